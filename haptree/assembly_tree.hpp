@@ -1,0 +1,42 @@
+// Assembly tree (ALGORITHMS §4): a balanced binary tree whose leaves are bodies and whose internal
+// nodes each own one joint (the principal joint). Node ids are pre-order (up[i] < i), so "ids
+// descending" is bottom-up and "ascending" is top-down.
+#pragma once
+
+#include <vector>
+
+namespace haptree {
+
+struct AssemblyTree {
+  std::vector<int> roots;        // one per connected component; usually exactly one
+  std::vector<int> P, Q, up;     // (nnodes) children (-1 for leaves), parent (-1 for roots)
+  std::vector<int> joint;        // (nnodes) principal joint (= successor body id); -1 for leaves
+  std::vector<int> body;         // (nnodes) body id for leaves; -1 for internal nodes
+  std::vector<int> depth;        // (nnodes) root = 0
+  std::vector<int> slot_j;       // (nnodes) slot of the principal joint in P's handles
+  std::vector<int> slot_k;       // (nnodes) slot of the principal joint in Q's handles
+  std::vector<int> handle_adr;   // (nnodes) CSR offsets into `handles`
+  std::vector<int> handle_num;   // (nnodes)
+  std::vector<int> handles;      // joint ids; order P' then Q' (§5.3)
+  std::vector<int> leaf_of_body;     // (nbodies)
+  std::vector<int> owner_of_joint;   // (nbodies) internal node whose principal joint is J; -1 for 0
+  int max_depth = 0;
+  int max_handles = 0;
+
+  int nnodes() const { return static_cast<int>(up.size()); }
+  bool is_leaf(int node) const { return P[node] < 0; }
+  int nhandles(int node) const { return handle_num[node]; }
+  int handle(int node, int slot) const { return handles[handle_adr[node] + slot]; }
+  int sibling(int node) const {
+    const int u = up[node];
+    return u < 0 ? -1 : (P[u] == node ? Q[u] : P[u]);
+  }
+  // Up-region of a leaf: the leaf and all its ancestors, ids ascending (root first).
+  std::vector<int> up_region(int leaf) const;
+};
+
+// Builds the tree for bodies 0..n-1 with parent[k] < k (parent[0] = -1) by centroid-edge
+// decomposition (§4.3); chains give the middle-split tree of §4.2.
+AssemblyTree build_assembly_tree(const std::vector<int>& parent);
+
+}  // namespace haptree

@@ -1,0 +1,47 @@
+#include "haptree/data.hpp"
+
+namespace haptree {
+
+State::State(const Model& model)
+    : q(neutral_configuration(model)),
+      qd(Eigen::VectorXd::Zero(model.nv)),
+      tau(Eigen::VectorXd::Zero(model.nv)),
+      f_ext(model.nbodies, Vec6::Zero()) {}
+
+Data::Data(const Model& model) {
+  const int nb = model.nbodies;
+  const auto& t = model.tree;
+  const int nn = t.nnodes();
+  R.assign(nb, Mat3::Identity());
+  r.assign(nb, Vec3::Zero());
+  d.assign(nb, Vec3::Zero());
+  v.assign(nb, Vec6::Zero());
+  S.assign(nb, Vec6::Zero());
+  c.assign(nb, Vec6::Zero());
+  I.assign(nb, Mat6::Zero());
+  Iinv.assign(nb, Mat6::Zero());
+  f_total.assign(nb, Vec6::Zero());
+  p_bias.assign(nb, Vec6::Zero());
+  kind.resize(nn);
+  Phi_adr.resize(nn);
+  vec_adr.resize(nn);
+  std::int64_t phi = 0;
+  int vec = 0;
+  for (int node = 0; node < nn; ++node) {
+    kind[node] = t.is_leaf(node) ? NodeKind::kLeaf : NodeKind::kActive;
+    const int h = t.handle_num[node];
+    Phi_adr[node] = phi;
+    phi += 36LL * h * h;
+    vec_adr[node] = vec;
+    vec += 6 * h;
+  }
+  Phi_buf.assign(phi, 0.0);
+  b_buf.assign(vec, 0.0);
+  f_buf.assign(vec, 0.0);
+  W.assign(nn, Mat6::Zero());
+  beta.assign(nn, Vec6::Zero());
+  taut.assign(nn, Vec6::Zero());
+  qdd = Eigen::VectorXd::Zero(model.nv);
+}
+
+}  // namespace haptree

@@ -1,0 +1,78 @@
+// State (what a checkpoint needs) and Data (the preallocated workspace every pass writes).
+// Data is sized once from the Model; nothing in a dynamics step allocates.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "haptree/model.hpp"
+
+namespace haptree {
+
+struct State {
+  explicit State(const Model& model);
+  Eigen::VectorXd q, qd, tau;   // (nq), (nv), (nv)
+  std::vector<Vec6> f_ext;      // (nbodies) applied forces, world axes, at each body's origin r_k
+  double t = 0;
+};
+
+enum class NodeKind : std::uint8_t { kLeaf, kActive, kRigid };
+
+// Counters instead of logging on the hot path (MuJoCo's warning counters).
+struct Diagnostics {
+  std::int64_t nodes_bottom_up = 0;   // nodes assembled in the last bottom-up pass
+  std::int64_t nodes_top_down = 0;    // nodes visited in the last top-down pass
+  std::int64_t singular_pivots = 0;   // joint systems T^T Φ̂ T that were not positive definite
+  std::int64_t nonfinite = 0;         // non-finite accelerations produced
+  int last_bad_node = -1;
+};
+
+using MatMap = Eigen::Map<Eigen::MatrixXd>;
+using CMatMap = Eigen::Map<const Eigen::MatrixXd>;
+using BlockMap = Eigen::Map<Mat6, 0, Eigen::OuterStride<>>;
+using CBlockMap = Eigen::Map<const Mat6, 0, Eigen::OuterStride<>>;
+using VecMap = Eigen::Map<Vec6>;
+using CVecMap = Eigen::Map<const Vec6>;
+
+struct Data {
+  explicit Data(const Model& model);
+
+  // Kinematics (world axes). r_k is body k's origin = handle point of joint k.
+  std::vector<Mat3> R;          // (nbodies) body rotation
+  std::vector<Vec3> r;          // (nbodies) body origin
+  std::vector<Vec3> d;          // (nbodies) r_k - r_parent, from local offsets (never a far subtraction)
+  std::vector<Vec6> v;          // (nbodies) spatial velocity at r_k
+  std::vector<Vec6> S;          // (nbodies) 1-DOF motion subspace at r_k (rev/prism)
+  std::vector<Vec6> c;          // (nbodies) velocity-product term c_J at r_k
+  std::vector<Mat6> I;          // (nbodies) spatial inertia at r_k
+  std::vector<Mat6> Iinv;       // (nbodies)
+  std::vector<Vec6> f_total;    // (nbodies) gravity + state.f_ext, at r_k
+  std::vector<Vec6> p_bias;     // (nbodies) f_total - v ×* I v
+
+  // Assembly coefficients, per node: Φ (6h×6h, column-major) and b, f (6h).
+  std::vector<NodeKind> kind;   // (nnodes) leaf / active / rigid
+  std::vector<double> Phi_buf;
+  std::vector<std::int64_t> Phi_adr;   // (nnodes)
+  std::vector<double> b_buf, f_buf;    // handle-vector storage shared by b and f
+  std::vector<int> vec_adr;            // (nnodes)
+  std::vector<Mat6> W;                 // (nnodes) internal nodes
+  std::vector<Vec6> beta;              // (nnodes)
+  std::vector<Vec6> taut;              // (nnodes) (1 - WΦ̂) D τ, kept so β splits cleanly
+
+  Eigen::VectorXd qdd;          // (nv) output of forward_dynamics
+  Diagnostics diag;
+
+  int h(const Model& m, int node) const { return m.tree.handle_num[node]; }
+  BlockMap Phi(int node, int h, int a, int b) {
+    return BlockMap(Phi_buf.data() + Phi_adr[node] + 6 * a + 36 * h * b, Eigen::OuterStride<>(6 * h));
+  }
+  CBlockMap Phi(int node, int h, int a, int b) const {
+    return CBlockMap(Phi_buf.data() + Phi_adr[node] + 6 * a + 36 * h * b, Eigen::OuterStride<>(6 * h));
+  }
+  VecMap b(int node, int slot) { return VecMap(b_buf.data() + vec_adr[node] + 6 * slot); }
+  CVecMap b(int node, int slot) const { return CVecMap(b_buf.data() + vec_adr[node] + 6 * slot); }
+  VecMap f(int node, int slot) { return VecMap(f_buf.data() + vec_adr[node] + 6 * slot); }
+  CVecMap f(int node, int slot) const { return CVecMap(f_buf.data() + vec_adr[node] + 6 * slot); }
+};
+
+}  // namespace haptree

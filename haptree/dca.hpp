@@ -1,0 +1,42 @@
+// Divide-and-conquer articulated-body algorithm (ALGORITHMS §5–§7) in handle-point coordinates.
+#pragma once
+
+#include "haptree/data.hpp"
+
+namespace haptree {
+
+// Body rotations and origins from q; relative offsets d_k from local data.
+void forward_kinematics(const Model& model, Data& data, const Eigen::VectorXd& q) noexcept;
+// Body velocities, motion subspaces, c_J, inertias, bias forces (needs forward_kinematics).
+void body_dynamics_terms(const Model& model, Data& data, const State& state) noexcept;
+
+// Leaf coefficients (§5.1) for one leaf node.
+void dca_leaf(const Model& model, Data& data, int node) noexcept;
+// Assembly of one internal node from its children (§5.2), τ taken from `tau`.
+void dca_assemble(const Model& model, Data& data, int node, const Eigen::VectorXd& tau) noexcept;
+// Back-substitution at one internal node (§7): children's handle forces, and q̈ if active.
+void dca_top_down_node(const Model& model, Data& data, int node) noexcept;
+
+void dca_bottom_up(const Model& model, Data& data, const State& state) noexcept;
+void dca_top_down(const Model& model, Data& data) noexcept;
+
+// Full forward dynamics: kinematics, both passes. Returns data.qdd.
+const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
+
+// Joint motion subspace S (6×n), constraint basis T (6×(6−n)) and D (6×n) at the handle point, world
+// axes (§1 table). Fixed-max-size matrices: no allocation.
+using JointMat = Eigen::Matrix<double, 6, Eigen::Dynamic, 0, 6, 6>;
+void joint_subspaces(const Model& model, const Data& data, int joint, JointMat& S, JointMat& T,
+                     JointMat& D) noexcept;
+
+// Semi-implicit Euler: qd += dt·qdd, then q integrated with the new qd (quaternions by exponential).
+void integrate(const Model& model, Eigen::VectorXd& q, Eigen::VectorXd& qd,
+               const Eigen::VectorXd& qdd, double dt) noexcept;
+void integrate_positions(const Model& model, Eigen::VectorXd& q, const Eigen::VectorXd& qd,
+                         double dt) noexcept;
+
+// Kinetic and gravitational potential energy (for drift checks).
+double kinetic_energy(const Model& model, const Data& data) noexcept;
+double potential_energy(const Model& model, const Data& data) noexcept;
+
+}  // namespace haptree

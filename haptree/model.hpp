@@ -1,0 +1,93 @@
+// Model: the immutable description of an articulated body (bodies, joints, assembly tree).
+// Built once by ModelBuilder::build() (validates, builds the balanced assembly tree, computes the
+// fingerprint) and shared as std::shared_ptr<const Model>. Algorithms never write it.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "haptree/assembly_tree.hpp"
+#include "haptree/spatial.hpp"
+
+namespace haptree {
+
+enum class JointType { kRevolute, kPrismatic, kSpherical, kFree, kFixed };
+
+const char* joint_type_name(JointType t);
+int joint_dofs(JointType t);        // 1, 1, 3, 6, 0
+int joint_nq(JointType t);          // 1, 1, 4 (quaternion w,x,y,z), 7 (x,y,z, w,x,y,z), 0
+
+struct ModelError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+// Units are the scene's: SI for robots; Å, amu, ps, kJ/mol for molecules (docs/units.md).
+struct Model {
+  int nbodies = 0;   // body 0 is the ground (world); joint k (k >= 1) connects parent[k] -> k
+  int nq = 0;        // configuration coordinates
+  int nv = 0;        // joint DOFs
+  std::vector<std::string> body_name, joint_name;   // (nbodies); joint_name[0] = ""
+  std::vector<int> parent;                          // (nbodies); parent[0] = -1, parent[k] < k
+  std::vector<JointType> joint_type;                // (nbodies)
+  std::vector<int> q_adr, v_adr, v_num;             // (nbodies)
+  // Joint frame placement in the parent body frame (at q = 0). The successor body frame is the
+  // joint frame moved by the joint: its origin is the joint's handle point (ALGORITHMS §2.3).
+  std::vector<Mat3> joint_rotation;                 // (nbodies)
+  std::vector<Vec3> joint_offset;                   // (nbodies)
+  std::vector<Vec3> joint_axis;                     // (nbodies) unit, joint frame (rev/prism)
+  std::vector<double> mass;                         // (nbodies); mass[0] = 0 (ground)
+  std::vector<Vec3> com;                            // (nbodies) body frame
+  std::vector<Mat3> inertia;                        // (nbodies) about the COM, body frame
+  std::vector<std::vector<int>> children;           // (nbodies)
+  Vec3 gravity{0, 0, -9.81};
+  AssemblyTree tree;                                // derived, constant
+  std::uint64_t fingerprint = 0;                    // hash of everything above (canonical order)
+
+  int joint_index(const std::string& name) const;   // -1 if absent
+  int body_index(const std::string& name) const;    // -1 if absent
+  int max_depth() const { return tree.max_depth; }
+};
+
+struct BuildOptions {
+  // Bodies with more children than this are split into a chain of pieces joined by fixed joints so
+  // the assembly tree stays logarithmic (ALGORITHMS §4.4). Costs accuracy in proportion to the
+  // degree; 0 disables it. The ground is never split.
+  int max_children = 0;
+};
+
+class ModelBuilder {
+ public:
+  ModelBuilder();
+  // Adds body `name` attached to `parent` (0 = ground) by a joint placed at `joint_offset`,
+  // rotated by `joint_rotation` in the parent frame; `axis` is in the joint frame. Mass properties
+  // are in the new body's frame (origin at the joint point). Returns the body id.
+  int add_body(const std::string& name, int parent, JointType type, const Vec3& joint_offset,
+               const Mat3& joint_rotation, const Vec3& axis, double mass, const Vec3& com,
+               const Mat3& inertia_about_com, const std::string& joint_name = "");
+  void set_gravity(const Vec3& g) { gravity_ = g; }
+  int nbodies() const { return static_cast<int>(bodies_.size()); }
+  std::shared_ptr<const Model> build(const BuildOptions& options = {}) const;
+
+ private:
+  struct BodyRecord {
+    std::string name, joint_name;
+    int parent;
+    JointType type;
+    Vec3 offset;
+    Mat3 rotation;
+    Vec3 axis;
+    double mass;
+    Vec3 com;
+    Mat3 inertia;
+  };
+  std::vector<BodyRecord> bodies_;
+  Vec3 gravity_{0, 0, -9.81};
+};
+
+// Neutral configuration (zero angles, identity quaternions).
+Eigen::VectorXd neutral_configuration(const Model& model);
+
+}  // namespace haptree

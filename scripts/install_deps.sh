@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Installs what haptree needs on Debian 12 (as root, or with sudo). Skips apt when all is present.
+set -euo pipefail
+PKGS=(
+  build-essential cmake pkg-config git
+  libeigen3-dev libspdlog-dev libcli11-dev nlohmann-json3-dev
+  liblcm-dev liblcm-bin libglib2.0-dev          # LCM (pkg-config lcm needs glib)
+  gemmi-dev                                     # PDB / mmCIF reading
+  liburdfdom-dev                                # URDF models
+  libgtest-dev libgmock-dev libbenchmark-dev    # tests and benchmarks
+  libmujoco-dev                                 # test-only external oracle
+  python3 python3-matplotlib                    # benchmark plots
+  iproute2 util-linux                           # network-namespace tests (ip, unshare)
+)
+missing=()
+for p in "${PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "[haptree] all Debian packages present"
+  exit 0
+fi
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
+echo "[haptree] installing: ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"

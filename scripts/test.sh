@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# The README's test command: install what is missing, configure, build, run every test.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/install_deps.sh
+bash scripts/build.sh
+cd build
+ctest --output-on-failure -j "${HAPTREE_JOBS:-$(nproc)}" --timeout 900

@@ -1,0 +1,36 @@
+// Independent O(n^3) forward-dynamics oracle for tests: composite-rigid-body mass matrix and
+// recursive Newton–Euler bias, world-origin coordinates, Cholesky — all in long double. It shares
+// only the Model's *description* with the DCA code (no kinematics, no spatial helpers).
+#pragma once
+
+#include <vector>
+
+#include "haptree/data.hpp"
+
+namespace haptree::testing {
+
+using LD = long double;
+using VecXL = Eigen::Matrix<LD, Eigen::Dynamic, 1>;
+using MatXL = Eigen::Matrix<LD, Eigen::Dynamic, Eigen::Dynamic>;
+
+struct OracleResult {
+  Eigen::VectorXd qdd;
+  MatXL H;                        // mass matrix
+  VecXL C;                        // bias (velocity products, gravity, external forces): H q̈ = τ − C
+  std::vector<Vec6> body_acc;     // spatial acceleration of each body at its origin r_k (world axes)
+  std::vector<Vec3> r;            // body origins
+};
+
+// Forward dynamics. `locked` (optional, size nv): DOFs locked (q̈ = 0) — their rows/columns are
+// removed from H; their q̇ still counts in the bias.
+OracleResult oracle_forward_dynamics(const Model& model, const State& state,
+                                     const std::vector<bool>& locked = {});
+
+// Relative error ‖a − b‖ / max(‖b‖, floor).
+double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor = 1e-12);
+
+// Random state: angles in [-1, 1], velocities in [-1, 1], torques in [-1, 1], random unit
+// quaternions, small random external forces.
+State random_state(const Model& model, unsigned seed, double vel_scale = 1.0);
+
+}  // namespace haptree::testing
