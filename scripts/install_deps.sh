@@ -9,6 +9,7 @@ PKGS=(
   liburdfdom-dev                                # URDF models
   libgtest-dev libgmock-dev libbenchmark-dev    # tests and benchmarks
   libmujoco-dev                                 # test-only external oracle
+  libsimbody-dev libbullet-dev                  # peer engines for the side-by-side benchmark (optional at build time)
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
 )
