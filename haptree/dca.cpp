@@ -38,47 +38,57 @@ Vec6 joint_velocity(const Model& m, const Data& d, int k, const Eigen::VectorXd&
 
 }  // namespace
 
+void joint_placement(const Model& m, int k, const Eigen::VectorXd& q, const Mat3& Rp, Mat3& Rk,
+                     Vec3& dk) noexcept {
+  const int a = m.q_adr[k];
+  const Mat3 Rj = Rp * m.joint_rotation[k];
+  Vec3 local = m.joint_offset[k];
+  switch (m.joint_type[k]) {
+    case JointType::kRevolute:
+      Rk = Rj * Eigen::AngleAxisd(q(a), m.joint_axis[k]).toRotationMatrix();
+      break;
+    case JointType::kPrismatic:
+      Rk = Rj;
+      local += m.joint_rotation[k] * (m.joint_axis[k] * q(a));
+      break;
+    case JointType::kSpherical: Rk = Rj * quat_to_rot(q, a); break;
+    case JointType::kFree:
+      Rk = Rj * quat_to_rot(q, a + 3);
+      local += m.joint_rotation[k] * q.segment<3>(a);
+      break;
+    case JointType::kFixed: Rk = Rj; break;
+  }
+  dk = Rp * local;
+}
+
 void forward_kinematics(const Model& m, Data& d, const Eigen::VectorXd& q) noexcept {
   d.R[0].setIdentity();
   d.r[0].setZero();
   d.d[0].setZero();
   for (int k = 1; k < m.nbodies; ++k) {
     const int p = m.parent[k];
-    const int a = m.q_adr[k];
-    const Mat3 Rj = d.R[p] * m.joint_rotation[k];
-    Vec3 local = m.joint_offset[k];
-    switch (m.joint_type[k]) {
-      case JointType::kRevolute:
-        d.R[k] = Rj * Eigen::AngleAxisd(q(a), m.joint_axis[k]).toRotationMatrix();
-        break;
-      case JointType::kPrismatic:
-        d.R[k] = Rj;
-        local += m.joint_rotation[k] * (m.joint_axis[k] * q(a));
-        break;
-      case JointType::kSpherical: d.R[k] = Rj * quat_to_rot(q, a); break;
-      case JointType::kFree:
-        d.R[k] = Rj * quat_to_rot(q, a + 3);
-        local += m.joint_rotation[k] * q.segment<3>(a);
-        break;
-      case JointType::kFixed: d.R[k] = Rj; break;
-    }
-    d.d[k] = d.R[p] * local;
+    joint_placement(m, k, q, d.R[p], d.R[k], d.d[k]);
     d.r[k] = d.r[p] + d.d[k];
   }
+}
+
+Vec6 joint_motion_terms(const Model& m, Data& d, int k, const Eigen::VectorXd& qd,
+                        const Vec6& v_parent) noexcept {
+  if (m.joint_type[k] == JointType::kRevolute) {
+    d.S[k] << d.R[k] * m.joint_axis[k], Vec3::Zero();
+  } else if (m.joint_type[k] == JointType::kPrismatic) {
+    d.S[k] << Vec3::Zero(), d.R[k] * m.joint_axis[k];
+  }
+  const Vec6 sq = joint_velocity(m, d, k, qd);
+  d.v[k] = shift_motion(v_parent, d.d[k]) + sq;
+  d.c[k] = cross_motion(d.v[k], sq);
+  return d.v[k];
 }
 
 void body_dynamics_terms(const Model& m, Data& d, const State& st) noexcept {
   d.v[0].setZero();
   for (int k = 1; k < m.nbodies; ++k) {
-    const int p = m.parent[k];
-    if (m.joint_type[k] == JointType::kRevolute) {
-      d.S[k] << d.R[k] * m.joint_axis[k], Vec3::Zero();
-    } else if (m.joint_type[k] == JointType::kPrismatic) {
-      d.S[k] << Vec3::Zero(), d.R[k] * m.joint_axis[k];
-    }
-    const Vec6 sq = joint_velocity(m, d, k, st.qd);
-    d.v[k] = shift_motion(d.v[p], d.d[k]) + sq;
-    d.c[k] = cross_motion(d.v[k], sq);
+    joint_motion_terms(m, d, k, st.qd, d.v[m.parent[k]]);
     const Mat3& Rk = d.R[k];
     const Vec3 cw = Rk * m.com[k];
     const Mat3 Ic = Rk * m.inertia[k] * Rk.transpose();
@@ -324,30 +334,33 @@ const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st
   return d.qdd;
 }
 
+void integrate_joint(const Model& m, int k, Eigen::VectorXd& q, const Eigen::VectorXd& qd,
+                     double dt) noexcept {
+  const int a = m.q_adr[k], v = m.v_adr[k];
+  switch (m.joint_type[k]) {
+    case JointType::kRevolute:
+    case JointType::kPrismatic: q(a) += dt * qd(v); break;
+    case JointType::kSpherical:
+    case JointType::kFree: {
+      const int qa = m.joint_type[k] == JointType::kFree ? a + 3 : a;
+      Quat qu(q(qa), q(qa + 1), q(qa + 2), q(qa + 3));
+      qu.normalize();
+      if (m.joint_type[k] == JointType::kFree)
+        q.segment<3>(a) += dt * (qu.toRotationMatrix() * qd.segment<3>(v + 3));
+      const Vec3 w = qd.segment<3>(v) * dt;
+      const double ang = w.norm();
+      const Quat dq = ang > 1e-300 ? Quat(Eigen::AngleAxisd(ang, w / ang)) : Quat::Identity();
+      qu = (qu * dq).normalized();
+      q(qa) = qu.w(); q(qa + 1) = qu.x(); q(qa + 2) = qu.y(); q(qa + 3) = qu.z();
+      break;
+    }
+    case JointType::kFixed: break;
+  }
+}
+
 void integrate_positions(const Model& m, Eigen::VectorXd& q, const Eigen::VectorXd& qd,
                          double dt) noexcept {
-  for (int k = 1; k < m.nbodies; ++k) {
-    const int a = m.q_adr[k], v = m.v_adr[k];
-    switch (m.joint_type[k]) {
-      case JointType::kRevolute:
-      case JointType::kPrismatic: q(a) += dt * qd(v); break;
-      case JointType::kSpherical:
-      case JointType::kFree: {
-        const int qa = m.joint_type[k] == JointType::kFree ? a + 3 : a;
-        Quat qu(q(qa), q(qa + 1), q(qa + 2), q(qa + 3));
-        qu.normalize();
-        if (m.joint_type[k] == JointType::kFree)
-          q.segment<3>(a) += dt * (qu.toRotationMatrix() * qd.segment<3>(v + 3));
-        const Vec3 w = qd.segment<3>(v) * dt;
-        const double ang = w.norm();
-        const Quat dq = ang > 1e-300 ? Quat(Eigen::AngleAxisd(ang, w / ang)) : Quat::Identity();
-        qu = (qu * dq).normalized();
-        q(qa) = qu.w(); q(qa + 1) = qu.x(); q(qa + 2) = qu.y(); q(qa + 3) = qu.z();
-        break;
-      }
-      case JointType::kFixed: break;
-    }
-  }
+  for (int k = 1; k < m.nbodies; ++k) integrate_joint(m, k, q, qd, dt);
 }
 
 void integrate(const Model& m, Eigen::VectorXd& q, Eigen::VectorXd& qd,

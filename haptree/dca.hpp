@@ -5,6 +5,16 @@
 
 namespace haptree {
 
+// Pose of body k from its parent's rotation Rp: rotation Rk and offset dk = r_k − r_parent.
+void joint_placement(const Model& model, int k, const Eigen::VectorXd& q, const Mat3& Rp, Mat3& Rk,
+                     Vec3& dk) noexcept;
+// S (1-DOF), v_k = shift(v_parent) + S q̇, c_J for joint k (needs R[k], d[k]); returns v_k.
+Vec6 joint_motion_terms(const Model& model, Data& data, int k, const Eigen::VectorXd& qd,
+                        const Vec6& v_parent) noexcept;
+// One joint of integrate_positions.
+void integrate_joint(const Model& model, int k, Eigen::VectorXd& q, const Eigen::VectorXd& qd,
+                     double dt) noexcept;
+
 // Body rotations and origins from q; relative offsets d_k from local data.
 void forward_kinematics(const Model& model, Data& data, const Eigen::VectorXd& q) noexcept;
 // Body velocities, motion subspaces, c_J, inertias, bias forces (needs forward_kinematics).

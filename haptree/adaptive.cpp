@@ -1,0 +1,422 @@
+#include "haptree/adaptive.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "haptree/dca.hpp"
+
+namespace haptree {
+
+namespace {
+
+using MatX = Eigen::MatrixXd;
+using VecX = Eigen::VectorXd;
+
+MatMap Psi_map(const Model& m, AdaptiveData& ad, const Data& d, int node) {
+  const int h = m.tree.handle_num[node];
+  return MatMap(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
+}
+CMatMap Psi_map(const Model& m, const AdaptiveData& ad, const Data& d, int node) {
+  const int h = m.tree.handle_num[node];
+  return CMatMap(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
+}
+
+// Gathers every body of a node's subtree (iterative; no recursion on deep trees).
+template <class F>
+void for_each_body(const AssemblyTree& t, int node, std::vector<int>& stack, F&& f) {
+  stack.clear();
+  stack.push_back(node);
+  while (!stack.empty()) {
+    const int n = stack.back();
+    stack.pop_back();
+    if (t.is_leaf(n)) f(t.body[n]);
+    else { stack.push_back(t.P[n]); stack.push_back(t.Q[n]); }
+  }
+}
+
+}  // namespace
+
+AdaptiveData::AdaptiveData(const Model& m) {
+  const auto& t = m.tree;
+  const int nn = t.nnodes(), nb = m.nbodies;
+  active.assign(nn, 0);
+  frontier_of_body.assign(nb, -1);
+  ref_body.assign(nn, -1);
+  for (int node = nn - 1; node >= 0; --node)
+    ref_body[node] = t.is_leaf(node) ? t.body[node] : std::min(ref_body[t.P[node]], ref_body[t.Q[node]]);
+  comp_mass.assign(nn, 0);
+  comp_com.assign(nn, Vec3::Zero());
+  comp_Ic.assign(nn, Mat3::Zero());
+  comp_ground.assign(nn, 0);
+  local_R.assign(nb, Mat3::Identity());
+  local_r.assign(nb, Vec3::Zero());
+  ref_velocity.assign(nn, Vec6::Zero());
+  pred_offset.assign(nb, Vec3::Zero());
+  std::size_t phi = 0, vec = 0;
+  for (int node = 0; node < nn; ++node) {
+    const std::size_t h = t.handle_num[node];
+    phi += 36 * h * h;
+    vec += 6 * h;
+  }
+  Psi_buf.assign(phi, 0.0);
+  p_buf.assign(vec, 0.0);
+  eta.assign(nn, 0.0);
+  active_nodes.reserve(nn);
+  frontier.reserve(nn);
+  active_joints.reserve(nb);
+  loaded_bodies.reserve(nb);
+  heap.reserve(nn);
+}
+
+// §8: Ψ, p, η bottom-up from the full-articulated coefficients held in `d`.
+void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
+  const auto& t = m.tree;
+  for (int node = t.nnodes() - 1; node >= 0; --node) {
+    if (t.is_leaf(node)) {
+      ad.eta[node] = 0;
+      const int h = t.handle_num[node];
+      Psi_map(m, ad, d, node).setZero();
+      for (int s = 0; s < 6 * h; ++s) ad.p_buf[d.vec_adr[node] + s] = 0;
+      continue;
+    }
+    const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+    const int j = t.slot_j[node], k = t.slot_k[node];
+    const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+    const Mat6& W = d.W[node];
+    const Vec6& beta = d.beta[node];
+    // K, Rr (6 × 6hC): f_c = K f^C + β, s_Q − s_P = Rr f^C.
+    MatX K(6, 6 * hC), Rr(6, 6 * hC);
+    MatX MP = MatX::Zero(6 * hP, 6 * hC), MQ = MatX::Zero(6 * hQ, 6 * hC);
+    int c = 0;
+    for (int i = 0; i < hP; ++i) {
+      if (i == j) continue;
+      const Mat6 Pji = d.Phi(P, hP, j, i);
+      K.block<6, 6>(0, 6 * c) = W * Pji;
+      Rr.block<6, 6>(0, 6 * c) = -Pji;
+      MP.block<6, 6>(6 * i, 6 * c).setIdentity();
+      ++c;
+    }
+    for (int l = 0; l < hQ; ++l) {
+      if (l == k) continue;
+      const Mat6 Qkl = d.Phi(Q, hQ, k, l);
+      K.block<6, 6>(0, 6 * c) = -W * Qkl;
+      Rr.block<6, 6>(0, 6 * c) = Qkl;
+      MQ.block<6, 6>(6 * l, 6 * c).setIdentity();
+      ++c;
+    }
+    MP.middleRows<6>(6 * j) = -K;
+    MQ.middleRows<6>(6 * k) = K;
+    VecX mP = VecX::Zero(6 * hP), mQ = VecX::Zero(6 * hQ);
+    mP.segment<6>(6 * j) = -beta;
+    mQ.segment<6>(6 * k) = beta;
+    const AdaptiveData& cad = ad;
+    const CMatMap PsiP = Psi_map(m, cad, d, P), PsiQ = Psi_map(m, cad, d, Q);
+    const Eigen::Map<const VecX> pP(ad.p_buf.data() + d.vec_adr[P], 6 * hP);
+    const Eigen::Map<const VecX> pQ(ad.p_buf.data() + d.vec_adr[Q], 6 * hQ);
+    MatMap PsiC = Psi_map(m, ad, d, node);
+    Eigen::Map<VecX> pC(ad.p_buf.data() + d.vec_adr[node], 6 * hC);
+    PsiC = MP.transpose() * PsiP * MP + MQ.transpose() * PsiQ * MQ;
+    pC = MP.transpose() * (2 * PsiP * mP + pP) + MQ.transpose() * (2 * PsiQ * mQ + pQ);
+    double eta = mP.dot(PsiP * mP) + mP.dot(pP) + ad.eta[P] + mQ.dot(PsiQ * mQ) + mQ.dot(pQ) +
+                 ad.eta[Q];
+    const int nJ = m.v_num[J];
+    if (nJ > 0) {
+      JointMat S, T, D;
+      joint_subspaces(m, d, J, S, T, D);
+      const Mat6 Phat = d.Phi(P, hP, j, j) + d.Phi(Q, hQ, k, k);
+      const MatX Qm = D.transpose() * (Phat * K + Rr);
+      const VecX q0 = D.transpose() * (Phat * beta + d.b(Q, k) - d.b(P, j) - d.c[J]);
+      PsiC += Qm.transpose() * Qm;   // A_J = 1
+      pC += 2 * Qm.transpose() * q0;
+      eta += q0.squaredNorm();
+    }
+    PsiC = (0.5 * (PsiC + PsiC.transpose())).eval();
+    ad.eta[node] = eta;
+  }
+}
+
+double metric_value(const Model& m, const AdaptiveData& ad, int node, const double* f) {
+  const int h = m.tree.handle_num[node];
+  if (m.tree.is_leaf(node)) return 0;
+  std::size_t adr = 0, vadr = 0;
+  // Offsets match Data's layout (computed the same way).
+  for (int n = 0; n < node; ++n) {
+    adr += 36 * std::size_t(m.tree.handle_num[n]) * m.tree.handle_num[n];
+    vadr += 6 * std::size_t(m.tree.handle_num[n]);
+  }
+  const CMatMap Psi(ad.Psi_buf.data() + adr, 6 * h, 6 * h);
+  const Eigen::Map<const VecX> p(ad.p_buf.data() + vadr, 6 * h), fv(f, 6 * h);
+  return fv.dot(Psi * fv) + fv.dot(p) + ad.eta[node];
+}
+
+namespace {
+
+double metric_at(const Model& m, const Data& d, const AdaptiveData& ad, int node) {
+  const int h = m.tree.handle_num[node];
+  const CMatMap Psi(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
+  const Eigen::Map<const VecX> p(ad.p_buf.data() + d.vec_adr[node], 6 * h);
+  const Eigen::Map<const VecX> f(d.f_buf.data() + d.vec_adr[node], 6 * h);
+  return f.dot(Psi * f) + f.dot(p) + ad.eta[node];
+}
+
+// Frontier caches from a full forward_kinematics in `d`.
+void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
+  const auto& t = m.tree;
+  const int nn = t.nnodes();
+  ad.active_nodes.clear();
+  ad.frontier.clear();
+  ad.active_joints.clear();
+  for (int node = 0; node < nn; ++node) {
+    if (t.is_leaf(node)) { d.kind[node] = NodeKind::kLeaf; continue; }
+    d.kind[node] = ad.active[node] ? NodeKind::kActive : NodeKind::kRigid;
+    if (ad.active[node]) {
+      ad.active_nodes.push_back(node);
+      ad.active_joints.push_back(t.joint[node]);
+    }
+  }
+  for (int root : t.roots)
+    if (t.is_leaf(root) || !ad.active[root]) ad.frontier.push_back(root);
+  for (int node : ad.active_nodes)
+    for (int ch : {t.P[node], t.Q[node]})
+      if (t.is_leaf(ch) || !ad.active[ch]) ad.frontier.push_back(ch);
+  std::sort(ad.active_joints.begin(), ad.active_joints.end());
+  // V1: inactive joints do not move.
+  std::vector<char> joint_active(m.nbodies, 0);
+  for (int J : ad.active_joints) joint_active[J] = 1;
+  for (int k = 1; k < m.nbodies; ++k)
+    if (!joint_active[k]) st.qd.segment(m.v_adr[k], m.v_num[k]).setZero();
+  d.qdd.setZero();
+  // Composite inertia and body placements relative to each frontier node's reference body.
+  std::vector<int> stack;
+  for (int F : ad.frontier) {
+    const int ref = ad.ref_body[F];
+    const Mat3 Rr = d.R[ref];
+    const Vec3 rr = d.r[ref];
+    double M = 0;
+    Vec3 mc = Vec3::Zero();
+    bool ground = false;
+    for_each_body(t, F, stack, [&](int k) {
+      ad.frontier_of_body[k] = F;
+      ad.local_R[k] = k == ref ? Mat3::Identity() : Mat3(Rr.transpose() * d.R[k]);
+      ad.local_r[k] = k == ref ? Vec3::Zero() : Vec3(Rr.transpose() * (d.r[k] - rr));
+      if (k == 0) ground = true;
+      M += m.mass[k];
+      mc += m.mass[k] * (ad.local_r[k] + ad.local_R[k] * m.com[k]);
+    });
+    ad.comp_ground[F] = ground;
+    ad.comp_mass[F] = M;
+    const Vec3 com = M > 0 ? Vec3(mc / M) : Vec3::Zero();
+    Mat3 Ic = Mat3::Zero();
+    for_each_body(t, F, stack, [&](int k) {
+      if (k == 0) return;
+      const Vec3 dk = ad.local_r[k] + ad.local_R[k] * m.com[k] - com;
+      Ic += ad.local_R[k] * m.inertia[k] * ad.local_R[k].transpose() +
+            m.mass[k] * (dk.squaredNorm() * Mat3::Identity() - dk * dk.transpose());
+    });
+    // A one-body composite is the body itself: take its data verbatim (no round-off).
+    const bool single = t.is_leaf(F);
+    ad.comp_com[F] = single ? m.com[ref] : com;
+    ad.comp_Ic[F] = single ? m.inertia[ref] : Ic;
+  }
+}
+
+}  // namespace
+
+void set_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
+                       const std::vector<char>& active_internal_nodes) {
+  const auto& t = m.tree;
+  for (int node = 0; node < t.nnodes(); ++node) {
+    ad.active[node] = !t.is_leaf(node) && active_internal_nodes[node];
+    if (ad.active[node] && t.up[node] >= 0 && !active_internal_nodes[t.up[node]])
+      throw std::invalid_argument("set_active_region: active region is not a rooted subtree");
+  }
+  forward_kinematics(m, d, st.q);
+  build_region(m, d, st, ad);
+}
+
+double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
+                            const AdaptiveOptions& opt) {
+  const auto& t = m.tree;
+  // Full-articulated coefficients: every joint free (§9).
+  for (int node = 0; node < t.nnodes(); ++node)
+    d.kind[node] = t.is_leaf(node) ? NodeKind::kLeaf : NodeKind::kActive;
+  forward_kinematics(m, d, st.q);
+  body_dynamics_terms(m, d, st);
+  dca_bottom_up(m, d, st);
+  compute_metric_coefficients(m, d, ad);
+  std::fill(ad.active.begin(), ad.active.end(), 0);
+  auto& heap = ad.heap;
+  heap.clear();
+  double frontier_sum = 0;
+  for (int root : t.roots) {
+    for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
+    if (t.is_leaf(root)) continue;
+    const double v = metric_at(m, d, ad, root);
+    heap.push_back({v, root});
+    frontier_sum += v;
+  }
+  ad.report.total_metric = frontier_sum;
+  std::make_heap(heap.begin(), heap.end());
+  int dofs = 0;
+  while (!heap.empty()) {
+    if (opt.mode == AdaptiveOptions::Mode::kThreshold && frontier_sum <= opt.epsilon) break;
+    std::pop_heap(heap.begin(), heap.end());
+    const auto [value, node] = heap.back();
+    heap.pop_back();
+    const int nJ = m.v_num[t.joint[node]];
+    if (opt.mode == AdaptiveOptions::Mode::kBudget && dofs + nJ > opt.budget) continue;
+    ad.active[node] = 1;
+    dofs += nJ;
+    dca_top_down_node(m, d, node);
+    frontier_sum -= value;
+    for (int ch : {t.P[node], t.Q[node]}) {
+      if (t.is_leaf(ch)) continue;
+      const double v = metric_at(m, d, ad, ch);
+      frontier_sum += v;
+      heap.push_back({v, ch});
+      std::push_heap(heap.begin(), heap.end());
+    }
+  }
+  build_region(m, d, st, ad);
+  ad.report.neglected_metric = std::max(0.0, frontier_sum);
+  ad.report.active_dofs = dofs;
+  ad.report.selections++;
+  ad.last_options = opt;
+  ad.steps_since_selection = 0;
+  return ad.report.neglected_metric;
+}
+
+const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const State& st,
+                                                 AdaptiveData& ad) noexcept {
+  const auto& t = m.tree;
+  // 1. Reduced kinematics and velocities across active joints, in body order. The successor of
+  //    an active joint is always the reference (top) body of its frontier node.
+  for (int F : ad.frontier) {
+    if (ad.comp_ground[F]) {
+      d.R[0].setIdentity();
+      d.r[0].setZero();
+      ad.ref_velocity[F].setZero();
+    }
+  }
+  for (int J : ad.active_joints) {
+    const int p = m.parent[J];
+    const int Fp = ad.frontier_of_body[p];
+    const int ref = ad.ref_body[Fp];
+    const Mat3 Rp = d.R[ref] * ad.local_R[p];
+    const Vec3 lp = d.R[ref] * ad.local_r[p];
+    joint_placement(m, J, st.q, Rp, d.R[J], d.d[J]);
+    ad.pred_offset[J] = lp + d.d[J];
+    d.r[J] = d.r[ref] + ad.pred_offset[J];
+    d.R[p] = Rp;
+    d.r[p] = d.r[ref] + lp;
+    const Vec6 vp = shift_motion(ad.ref_velocity[Fp], lp);
+    ad.ref_velocity[ad.frontier_of_body[J]] = joint_motion_terms(m, d, J, st.qd, vp);
+  }
+  // 2. External loads into the frontier nodes, then composite coefficients (§6.2).
+  for (int F : ad.frontier) {
+    const int ref = ad.ref_body[F];
+    const Mat3& R = d.R[ref];
+    const Vec3 cw = R * ad.comp_com[F];
+    ad.ref_velocity[F] = ad.comp_ground[F] ? Vec6::Zero() : ad.ref_velocity[F];
+    if (!ad.comp_ground[F]) {
+      const double M = ad.comp_mass[F];
+      const Mat3 Ic = R * ad.comp_Ic[F] * R.transpose();
+      d.I[ref] = spatial_inertia(M, cw, Ic);
+      d.Iinv[ref] = spatial_inertia_inverse(M, cw, Ic);
+      d.f_total[ref] = gravity_force(M, cw, m.gravity);
+    }
+  }
+  auto add_load = [&](int k) {
+    const int F = ad.frontier_of_body[k];
+    if (ad.comp_ground[F]) return;
+    const int ref = ad.ref_body[F];
+    d.f_total[ref] += shift_force(st.f_ext[k], -(d.R[ref] * ad.local_r[k]));
+  };
+  if (ad.scan_forces) {
+    for (int k = 1; k < m.nbodies; ++k)
+      if (!st.f_ext[k].isZero(0)) add_load(k);
+  } else {
+    for (int k : ad.loaded_bodies) add_load(k);
+  }
+  std::int64_t up_count = 0;
+  for (int F : ad.frontier) {
+    const int h = t.handle_num[F];
+    ++up_count;
+    if (ad.comp_ground[F]) {
+      for (int x = 0; x < h; ++x) {
+        for (int y = 0; y < h; ++y) d.Phi(F, h, x, y).setZero();
+        d.b(F, x).setZero();
+      }
+      continue;
+    }
+    const int ref = ad.ref_body[F];
+    const Vec6& V = ad.ref_velocity[F];
+    const Vec6 a0 = d.Iinv[ref] * (d.f_total[ref] - cross_force(V, d.I[ref] * V));
+    // Handle point offsets from local data: 0 for the joint entering F (its successor is the
+    // reference body), the predecessor-side offset for joints leaving F.
+    auto offset = [&](int jx) {
+      return ad.frontier_of_body[jx] == F ? Vec3::Zero() : ad.pred_offset[jx];
+    };
+    for (int x = 0; x < h; ++x) {
+      const int jx = t.handle(F, x);
+      const Mat6 Mx = motion_shift_matrix(offset(jx));
+      const Mat6 MxI = Mx * d.Iinv[ref];
+      for (int y = x; y < h; ++y) {
+        const int jy = t.handle(F, y);
+        const Mat6 blk = MxI * motion_shift_matrix(offset(jy)).transpose();
+        d.Phi(F, h, x, y) = blk;
+        if (y != x) d.Phi(F, h, y, x) = blk.transpose();
+      }
+      d.b(F, x) = Mx * a0;
+    }
+  }
+  // 3. Hybrid bottom-up and top-down over the active region only.
+  for (auto it = ad.active_nodes.rbegin(); it != ad.active_nodes.rend(); ++it) {
+    dca_assemble(m, d, *it, st.tau);
+    ++up_count;
+  }
+  for (int root : t.roots)
+    for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
+  for (int node : ad.active_nodes) dca_top_down_node(m, d, node);
+  ad.report.nodes_bottom_up = up_count;
+  ad.report.nodes_top_down = static_cast<std::int64_t>(ad.active_nodes.size());
+  ad.report.active_nodes = static_cast<int>(ad.active_nodes.size());
+  ad.report.frontier_nodes = static_cast<int>(ad.frontier.size());
+  d.diag.nodes_bottom_up = up_count;
+  d.diag.nodes_top_down = ad.report.nodes_top_down;
+  return d.qdd;
+}
+
+const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, AdaptiveData& ad,
+                                    const AdaptiveOptions& opt, double dt) {
+  const bool changed = opt.mode != ad.last_options.mode || opt.epsilon != ad.last_options.epsilon ||
+                       opt.budget != ad.last_options.budget;
+  ad.report.reselected = false;
+  if (changed || ad.steps_since_selection >= std::max(1, opt.reselect_every)) {
+    select_active_region(m, d, st, ad, opt);
+    ad.report.reselected = true;
+  }
+  ++ad.steps_since_selection;
+  adaptive_forward_dynamics(m, d, st, ad);
+  for (int J : ad.active_joints) {
+    const int a = m.v_adr[J], n = m.v_num[J];
+    st.qd.segment(a, n) += dt * d.qdd.segment(a, n);
+    integrate_joint(m, J, st.q, st.qd, dt);
+  }
+  st.t += dt;
+  return ad.report;
+}
+
+void update_all_body_poses(const Model& m, Data& d, const AdaptiveData& ad) noexcept {
+  for (int k = 0; k < m.nbodies; ++k) {
+    const int F = ad.frontier_of_body[k];
+    if (F < 0) continue;
+    const int ref = ad.ref_body[F];
+    if (k == ref) continue;
+    d.R[k] = d.R[ref] * ad.local_R[k];
+    d.r[k] = d.r[ref] + d.R[ref] * ad.local_r[k];
+  }
+  for (int k = 1; k < m.nbodies; ++k) d.d[k] = d.r[k] - d.r[m.parent[k]];
+}
+
+}  // namespace haptree

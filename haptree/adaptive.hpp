@@ -1,0 +1,108 @@
+// Adaptive (hybrid) articulated-body dynamics (ALGORITHMS §6, §8–§10; Redon et al.).
+//
+// Only the joints of the *active region* — a rooted subtree of the assembly tree — move. Each child
+// of an active node that is not active is a *frontier* node: a rigid body (its whole subtree locked)
+// whose coefficients come from a cached composite inertia in O(h²) (§6.2), so a step costs
+// O(|active| + |frontier|) whatever n is.
+//
+// Velocity policy (§10.3, model V1): inactive joints have q̇ = 0. A frontier node is then one true
+// rigid body, its composite inertia and internal geometry are constant while it stays rigid (cached
+// in its reference body's frame and only rotated on use), and nothing inside it is ever revisited.
+// The price: a joint that is deactivated while moving loses its kinetic energy (an energy sink,
+// measured by tools/adaptive_sweep). Selection keeps joints whose acceleration metric is large, so
+// fast joints tend to stay active.
+//
+// Selection (§9, exact periodic policy §10.4-A): every `reselect_every` steps — or when ε or the
+// budget changes — a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
+// of every node (§8), and a greedy top-down walk activates the nodes with the largest metric until
+// the neglected metric Σ_{inactive} q̈ᵀ A q̈ is ≤ ε (threshold mode) or the DOF budget is used.
+#pragma once
+
+#include <vector>
+
+#include "haptree/data.hpp"
+
+namespace haptree {
+
+struct AdaptiveOptions {
+  enum class Mode { kThreshold, kBudget };
+  Mode mode = Mode::kBudget;
+  double epsilon = 1e-3;     // threshold mode: bound on Σ_{inactive} q̈ᵀ A q̈ (A = 1)
+  int budget = 48;           // budget mode: max active DOFs
+  int reselect_every = 10;   // steps between selections (1 = every step)
+};
+
+struct AdaptiveReport {
+  int active_dofs = 0;
+  int active_nodes = 0;
+  int frontier_nodes = 0;
+  double neglected_metric = 0;   // Σ over inactive joints of q̈ᵀq̈ at the last selection
+  double total_metric = 0;       // Σ over all joints (root metric) at the last selection
+  std::int64_t nodes_bottom_up = 0, nodes_top_down = 0;   // last hybrid pass
+  bool reselected = false;
+  std::int64_t selections = 0;
+};
+
+// Per-run adaptive workspace, sized once from the Model.
+struct AdaptiveData {
+  explicit AdaptiveData(const Model& model);
+  // Active region.
+  std::vector<char> active;            // (nnodes) internal node is active
+  std::vector<int> active_nodes;       // ids ascending (top-down order)
+  std::vector<int> frontier;           // non-active children of active nodes (+ rigid roots)
+  std::vector<int> active_joints;      // ascending body order (reduced kinematics order)
+  std::vector<int> frontier_of_body;   // (nbodies) frontier node containing the body
+  // Composite rigid data of frontier nodes, in the reference body's frame.
+  std::vector<int> ref_body;           // (nnodes) first (smallest-id) body of the node
+  std::vector<double> comp_mass;       // (nnodes)
+  std::vector<Vec3> comp_com;          // (nnodes) COM, ref frame, relative to ref origin
+  std::vector<Mat3> comp_Ic;           // (nnodes) rotational inertia about COM, ref frame
+  std::vector<char> comp_ground;       // (nnodes) contains the ground (immovable)
+  // Every body's pose relative to its frontier node's reference body (valid while rigid).
+  std::vector<Mat3> local_R;           // (nbodies)
+  std::vector<Vec3> local_r;           // (nbodies)
+  std::vector<Vec6> ref_velocity;      // (nnodes) frontier node velocity at its reference origin
+  std::vector<Vec3> pred_offset;       // (nbodies) r_J − r_ref of J's predecessor's frontier node
+  // Metric coefficients (§8), full-articulated, from the last selection.
+  std::vector<double> Psi_buf, p_buf;
+  std::vector<double> eta;             // (nnodes)
+  // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
+  std::vector<int> loaded_bodies;
+  bool scan_forces = true;
+  AdaptiveOptions last_options;
+  int steps_since_selection = 1 << 30;
+  AdaptiveReport report;
+  // Scratch for selection (sized once).
+  Eigen::MatrixXd scratch_a, scratch_b, scratch_c;
+  std::vector<std::pair<double, int>> heap;
+};
+
+// Acceleration metric coefficients (§8) of every node from a completed full DCA bottom-up pass.
+void compute_metric_coefficients(const Model& model, const Data& data, AdaptiveData& ad);
+// Metric value A(node, f) = fᵀΨf + fᵀp + η for handle forces f (6h).
+double metric_value(const Model& model, const AdaptiveData& ad, int node, const double* f);
+
+// Full pass + metric + greedy selection (§9); sets the active region, zeroes q̇ of inactive joints
+// (V1) and builds the frontier caches. O(n). Returns the neglected metric.
+double select_active_region(const Model& model, Data& data, State& state, AdaptiveData& ad,
+                            const AdaptiveOptions& options);
+// Sets an explicit active region (a rooted subtree: every ancestor of an active node is active).
+// Zeroes q̇ of inactive joints and builds the frontier caches. O(n).
+void set_active_region(const Model& model, Data& data, State& state, AdaptiveData& ad,
+                       const std::vector<char>& active_internal_nodes);
+
+// Hybrid forward dynamics on the current active region: reduced kinematics, bottom-up over active
+// nodes with composite frontier nodes, top-down. q̈ = 0 for inactive joints. No allocation.
+const Eigen::VectorXd& adaptive_forward_dynamics(const Model& model, Data& data, const State& state,
+                                                 AdaptiveData& ad) noexcept;
+
+// One adaptive step: reselect if due (or options changed), hybrid dynamics, semi-implicit Euler on
+// the active joints only.
+const AdaptiveReport& adaptive_step(const Model& model, Data& data, State& state, AdaptiveData& ad,
+                                    const AdaptiveOptions& options, double dt);
+
+// Poses of every body (Data::R, Data::r) from the frontier caches after an adaptive step. O(n):
+// for display and for snapshots of bodies deep inside rigid regions.
+void update_all_body_poses(const Model& model, Data& data, const AdaptiveData& ad) noexcept;
+
+}  // namespace haptree

@@ -1,0 +1,196 @@
+// Adaptive (hybrid) dynamics against plain DCA and the oracle with locked DOFs removed (§15.4–7).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "haptree/adaptive.hpp"
+#include "haptree/dca.hpp"
+#include "haptree/scenes.hpp"
+#include "tests/support/oracle.hpp"
+
+namespace haptree {
+namespace {
+
+using testing::oracle_forward_dynamics;
+using testing::random_state;
+using testing::rel_err;
+
+std::shared_ptr<const Model> scene(const std::string& name, int n, unsigned seed, bool mixed) {
+  SceneOptions o;
+  o.n = n;
+  o.seed = seed;
+  o.mixed_joints = mixed;
+  o.free_root = mixed;
+  return make_scene(name, o);
+}
+
+TEST(Adaptive, AllActiveEqualsPlainDca) {
+  for (const char* name : {"chain", "random_tree", "protein_like"}) {
+    auto m = scene(name, 100, 3, std::string(name) == "random_tree");
+    State st = random_state(*m, 11);
+    Data d(*m), d2(*m);
+    AdaptiveData ad(*m);
+    std::vector<char> all(m->tree.nnodes(), 1);
+    set_active_region(*m, d, st, ad, all);
+    const Eigen::VectorXd qa = adaptive_forward_dynamics(*m, d, st, ad);
+    const Eigen::VectorXd qf = forward_dynamics(*m, d2, st);
+    EXPECT_LE(rel_err(qa, qf), 1e-12) << name << " dca-vs-oracle " << rel_err(qf, oracle_forward_dynamics(*m, st).qdd);
+  }
+}
+
+// A random rooted subtree of internal nodes.
+std::vector<char> random_region(const Model& m, std::mt19937& rng, double keep) {
+  const auto& t = m.tree;
+  std::vector<char> a(t.nnodes(), 0);
+  std::uniform_real_distribution<double> u(0, 1);
+  for (int node = 0; node < t.nnodes(); ++node) {
+    if (t.is_leaf(node)) continue;
+    const bool parent_ok = t.up[node] < 0 || a[t.up[node]];
+    a[node] = parent_ok && (t.up[node] < 0 || u(rng) < keep);
+  }
+  return a;
+}
+
+TEST(Adaptive, LockedSubsetMatchesOracleWithDofsRemoved) {
+  std::mt19937 rng(5);
+  double worst = 0;
+  for (const char* name : {"chain", "binary_tree", "random_tree", "protein_like"}) {
+    for (unsigned seed = 1; seed <= 3; ++seed) {
+      auto m = scene(name, 120, seed, std::string(name) == "random_tree");
+      State st = random_state(*m, 20 + seed);
+      Data d(*m);
+      AdaptiveData ad(*m);
+      set_active_region(*m, d, st, ad, random_region(*m, rng, 0.8));   // zeroes locked q̇
+      const Eigen::VectorXd qa = adaptive_forward_dynamics(*m, d, st, ad);
+      std::vector<bool> locked(m->nv, true);
+      for (int J : ad.active_joints)
+        for (int i = 0; i < m->v_num[J]; ++i) locked[m->v_adr[J] + i] = false;
+      const auto ref = oracle_forward_dynamics(*m, st, locked);
+      const double e = rel_err(qa, ref.qdd);
+      worst = std::max(worst, e);
+      EXPECT_LE(e, 1e-9) << name << " seed " << seed;
+      for (int i = 0; i < m->nv; ++i)
+        if (locked[i]) EXPECT_EQ(qa(i), 0.0);
+    }
+  }
+  RecordProperty("max_rel_err", std::to_string(worst));
+}
+
+TEST(Adaptive, MetricCoefficientsEqualDirectSum) {
+  for (const char* name : {"chain", "random_tree"}) {
+    auto m = scene(name, 80, 4, std::string(name) == "random_tree");
+    State st = random_state(*m, 3);
+    Data d(*m);
+    AdaptiveData ad(*m);
+    forward_dynamics(*m, d, st);
+    compute_metric_coefficients(*m, d, ad);
+    const auto& t = m->tree;
+    // Every internal node, with its actual handle forces: A(C) = Σ_{J in C} q̈_Jᵀ q̈_J.
+    double total = d.qdd.squaredNorm();
+    for (int node = 0; node < t.nnodes(); ++node) {
+      if (t.is_leaf(node)) continue;
+      double direct = 0;
+      std::vector<int> stack{node};
+      while (!stack.empty()) {
+        const int n = stack.back();
+        stack.pop_back();
+        if (t.is_leaf(n)) continue;
+        const int J = t.joint[n];
+        direct += d.qdd.segment(m->v_adr[J], m->v_num[J]).squaredNorm();
+        stack.push_back(t.P[n]);
+        stack.push_back(t.Q[n]);
+      }
+      const double via = metric_value(*m, ad, node, d.f_buf.data() + d.vec_adr[node]);
+      EXPECT_NEAR(via, direct, 1e-9 * total) << name << " node " << node;
+    }
+  }
+}
+
+TEST(Adaptive, SelectionErrorEqualsOracleSumAndRespectsBounds) {
+  for (const char* name : {"chain", "protein_like", "random_tree"}) {
+    auto m = scene(name, 200, 6, std::string(name) == "random_tree");
+    const State st0 = random_state(*m, 9);
+    const auto full = oracle_forward_dynamics(*m, st0);
+    const double total = full.qdd.squaredNorm();
+    for (double frac : {0.5, 0.1, 0.01}) {
+      State st = st0;
+      Data d(*m);
+      AdaptiveData ad(*m);
+      AdaptiveOptions opt;
+      opt.mode = AdaptiveOptions::Mode::kThreshold;
+      opt.epsilon = frac * total;
+      const double neglected = select_active_region(*m, d, st, ad, opt);
+      double oracle_sum = 0;
+      std::vector<char> act(m->nbodies, 0);
+      for (int J : ad.active_joints) act[J] = 1;
+      for (int k = 1; k < m->nbodies; ++k)
+        if (!act[k]) oracle_sum += full.qdd.segment(m->v_adr[k], m->v_num[k]).squaredNorm();
+      EXPECT_NEAR(neglected, oracle_sum, 1e-9 * total) << name << " " << frac;
+      EXPECT_LE(neglected, opt.epsilon * (1 + 1e-9));
+    }
+    for (int k : {1, 12, 48, 100}) {
+      State st = st0;
+      Data d(*m);
+      AdaptiveData ad(*m);
+      AdaptiveOptions opt;
+      opt.mode = AdaptiveOptions::Mode::kBudget;
+      opt.budget = k;
+      select_active_region(*m, d, st, ad, opt);
+      int dofs = 0;
+      for (int J : ad.active_joints) dofs += m->v_num[J];
+      EXPECT_LE(dofs, k);
+      EXPECT_EQ(dofs, ad.report.active_dofs);
+      // The active set is a rooted subtree.
+      for (int node : ad.active_nodes)
+        if (m->tree.up[node] >= 0) EXPECT_TRUE(ad.active[m->tree.up[node]]);
+    }
+  }
+}
+
+TEST(Adaptive, NodeVisitsGrowSubLinearlyForFixedBudget) {
+  std::vector<double> visits;
+  for (int n : {1024, 4096, 16384, 65536}) {
+    SceneOptions o;
+    o.n = n;
+    auto m = make_chain(o);
+    State st(*m);
+    st.q.setConstant(0.2);
+    st.f_ext[n / 3](5) = 1.0;   // one load, near the active region
+    Data d(*m);
+    AdaptiveData ad(*m);
+    ad.scan_forces = false;
+    ad.loaded_bodies = {n / 3};
+    AdaptiveOptions opt;
+    opt.budget = 48;
+    opt.reselect_every = 1000000;
+    adaptive_step(*m, d, st, ad, opt, 1e-4);   // selects once
+    adaptive_step(*m, d, st, ad, opt, 1e-4);   // a pure hybrid step
+    ASSERT_FALSE(ad.report.reselected);
+    visits.push_back(double(ad.report.nodes_bottom_up + ad.report.nodes_top_down));
+    EXPECT_LE(ad.report.active_dofs, 48);
+  }
+  // 64× more bodies; a linear method would visit 64× more nodes.
+  EXPECT_LT(visits.back() / visits.front(), 2.0);
+  for (double v : visits) EXPECT_LT(v, 4 * 48 + 64);
+}
+
+TEST(Adaptive, StepsStayFiniteWhileEpsilonAndBudgetChange) {
+  auto m = scene("protein_like", 0, 0, false);
+  State st(*m);
+  Data d(*m);
+  AdaptiveData ad(*m);
+  std::mt19937 rng(1);
+  for (int i = 0; i < 200; ++i) {
+    AdaptiveOptions opt;
+    opt.mode = i % 2 ? AdaptiveOptions::Mode::kBudget : AdaptiveOptions::Mode::kThreshold;
+    opt.budget = 1 + static_cast<int>(rng() % 200);
+    opt.epsilon = std::pow(10.0, -static_cast<double>(rng() % 8));
+    adaptive_step(*m, d, st, ad, opt, 1e-3);
+    ASSERT_TRUE(st.q.allFinite() && st.qd.allFinite()) << i;
+    if (opt.mode == AdaptiveOptions::Mode::kBudget) EXPECT_LE(ad.report.active_dofs, opt.budget);
+  }
+}
+
+}  // namespace
+}  // namespace haptree
