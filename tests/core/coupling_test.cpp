@@ -1,0 +1,452 @@
+// O(log n) force-feedback coupling (ALGORITHMS §11–§12, §15.9): f_feed computed from the snapshot
+// alone against (1) a full DCA pass with the user forces added to the grabbed bodies' f_ext and
+// (2) the long-double oracle `I a + v ×* I v − f_u`; nodes read; joint owners; β_ext recovery;
+// no allocation per call; statuses; virtual coupling and unit mapping.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <cstdlib>
+#include <new>
+#include <random>
+#include <set>
+
+#include "haptree/coupling.hpp"
+#include "haptree/dca.hpp"
+#include "haptree/scenes.hpp"
+#include "tests/support/oracle.hpp"
+
+// Count every operator new in this binary (allocation assertions below). GCC 12 flags free() in a
+// replaced operator delete as mismatched; the pairing is ours (malloc/aligned_alloc ↔ free).
+#pragma GCC diagnostic ignored "-Wmismatched-new-delete"
+static std::atomic<long> g_allocs{0};
+void* operator new(std::size_t n) {
+  ++g_allocs;
+  if (void* p = std::malloc(n ? n : 1)) return p;
+  throw std::bad_alloc();
+}
+void* operator new[](std::size_t n) { return operator new(n); }
+void* operator new(std::size_t n, std::align_val_t al) {
+  ++g_allocs;
+  const std::size_t a = static_cast<std::size_t>(al);
+  if (void* p = std::aligned_alloc(a, (n + a - 1) & ~(a - 1))) return p;
+  throw std::bad_alloc();
+}
+void* operator new[](std::size_t n, std::align_val_t al) { return operator new(n, al); }
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete(void* p, std::size_t) noexcept { std::free(p); }
+void operator delete[](void* p) noexcept { std::free(p); }
+void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+void operator delete(void* p, std::align_val_t) noexcept { std::free(p); }
+void operator delete(void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+void operator delete[](void* p, std::align_val_t) noexcept { std::free(p); }
+void operator delete[](void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+
+namespace haptree {
+namespace {
+
+using testing::oracle_forward_dynamics;
+using testing::random_state;
+
+double rel6(const Vec6& a, const Vec6& ref) { return (a - ref).norm() / std::max(1.0, ref.norm()); }
+
+// Grabs on random bodies (repeats allowed, and forced when n ≥ 3) at random body-local points.
+std::vector<Grab> random_grabs(const Model& m, const Data& d, int n, std::mt19937& rng) {
+  std::uniform_int_distribution<int> body(1, m.nbodies - 1);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  std::vector<Grab> g;
+  for (int i = 0; i < n; ++i) {
+    const int k = (i == 2) ? g[0].body : body(rng);
+    g.push_back(make_grab(d, k, Vec3(u(rng), u(rng), u(rng))));
+  }
+  return g;
+}
+
+// Random user forces at the grab points; even grabs are 3-DOF ([0; F]), odd ones 6-DOF.
+std::vector<Vec6> random_forces(int n, std::mt19937& rng, double scale = 5.0) {
+  std::uniform_real_distribution<double> u(-scale, scale);
+  std::vector<Vec6> f(n);
+  for (int i = 0; i < n; ++i) {
+    for (int c = 0; c < 6; ++c) f[i](c) = u(rng);
+    if (i % 2 == 0) f[i].head<3>().setZero();
+  }
+  return f;
+}
+
+struct Reference {
+  explicit Reference(const Model& m) : st_applied(m) {}
+  std::vector<Vec6> full;     // from a full DCA pass with f_u applied
+  std::vector<Vec6> oracle;   // I a + v ×* I v − f_u with oracle body accelerations
+  State st_applied;
+};
+
+// The user forces moved to the body origins and added to State::f_ext.
+State apply_user_forces(const Model& m, const Data& kin, const State& st,
+                        const std::vector<Grab>& grabs, const std::vector<Vec6>& fu) {
+  State s2 = st;
+  for (std::size_t g = 0; g < grabs.size(); ++g) {
+    const int k = grabs[g].body;
+    s2.f_ext[k] += shift_force(fu[g], kin.r[k] - grabs[g].point);
+  }
+  return s2;
+}
+
+Reference reference(const Model& m, const State& st, const std::vector<Grab>& grabs,
+                    const std::vector<Vec6>& fu, bool with_oracle) {
+  const auto& t = m.tree;
+  Data kin(m);
+  forward_kinematics(m, kin, st.q);
+  Reference ref(m);
+  ref.st_applied = apply_user_forces(m, kin, st, grabs, fu);
+  Data d2(m);
+  forward_dynamics(m, d2, ref.st_applied);
+  EXPECT_EQ(d2.diag.singular_pivots, 0);
+  testing::OracleResult orc;
+  if (with_oracle) orc = oracle_forward_dynamics(m, ref.st_applied);
+  for (std::size_t g = 0; g < grabs.size(); ++g) {
+    const int k = grabs[g].body;
+    Vec6 fu_k = Vec6::Zero();   // all user forces on body k, at r_k
+    for (std::size_t g2 = 0; g2 < grabs.size(); ++g2)
+      if (grabs[g2].body == k) fu_k += shift_force(fu[g2], d2.r[k] - grabs[g2].point);
+    const int leaf = t.leaf_of_body[k];
+    Vec6 feed = d2.f_total[k] - fu_k;
+    for (int x = 0; x < t.handle_num[leaf]; ++x) {
+      const int jx = t.handle(leaf, x);
+      const Vec3 off = jx == k ? Vec3::Zero() : Vec3(d2.d[jx]);
+      feed += shift_force(d2.f(leaf, x), -off);   // handle force moved from its point to r_k
+    }
+    const Vec3 to_grab = grabs[g].point - d2.r[k];
+    ref.full.push_back(shift_force(feed, to_grab));
+    if (with_oracle) {
+      const Vec6 a = orc.body_acc[k];
+      const Vec6 f = d2.I[k] * a + cross_force(d2.v[k], d2.I[k] * d2.v[k]) - fu_k;
+      ref.oracle.push_back(shift_force(f, to_grab));
+    }
+  }
+  return ref;
+}
+
+// |E| computed independently from the assembly tree: U ∪ children(U).
+int extended_region_size(const Model& m, const std::vector<Grab>& grabs) {
+  const auto& t = m.tree;
+  std::set<int> U, E;
+  for (const auto& g : grabs)
+    for (int n = t.leaf_of_body[g.body]; n >= 0; n = t.up[n]) U.insert(n);
+  for (int n : U) {
+    E.insert(n);
+    if (!t.is_leaf(n)) { E.insert(t.P[n]); E.insert(t.Q[n]); }
+  }
+  return static_cast<int>(E.size());
+}
+
+struct Case {
+  std::string scene;
+  int n;
+  bool mixed, free_root, oracle;
+};
+
+class CouplingVsFullPass : public ::testing::TestWithParam<Case> {};
+
+TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
+  const Case c = GetParam();
+  double worst_full = 0, worst_oracle = 0, worst_applied = 0, worst_requery = 0;
+  int cases = 0;
+  for (unsigned seed = 1; seed <= 2; ++seed) {
+    SceneOptions o;
+    o.n = c.n;
+    o.seed = seed;
+    o.mixed_joints = c.mixed;
+    o.free_root = c.free_root;
+    auto model = make_scene(c.scene, o);
+    const Model& m = *model;
+    const State st = random_state(m, 300 + seed);
+    Data d(m);
+    forward_dynamics(m, d, st);
+    ASSERT_EQ(d.diag.singular_pivots, 0);
+    std::mt19937 rng(seed * 7919 + c.n);
+    CouplingSnapshot snap, snap_applied;
+    CouplingWorkspace ws;
+    for (int nf : {1, 2, 3, 5, 8}) {
+      const auto grabs = random_grabs(m, d, nf, rng);
+      const auto fu = random_forces(nf, rng);
+      const bool orc = c.oracle && (nf == 1 || nf == 8 || c.n <= 64);
+      const Reference ref = reference(m, st, grabs, fu, orc);
+
+      // (1) snapshot from a pass WITHOUT the user forces.
+      make_coupling_snapshot(m, d, grabs, {}, 11, st.t, snap);
+      ws.reserve_for(snap);
+      std::vector<Vec6> feed(nf);
+      ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
+      for (int g = 0; g < nf; ++g) {
+        worst_full = std::max(worst_full, rel6(feed[g], ref.full[g]));
+        if (orc) worst_oracle = std::max(worst_oracle, rel6(feed[g], ref.oracle[g]));
+      }
+      // Nodes read: 2·depth+1 for one grab, |union of extended up-regions| for several.
+      if (nf == 1) {
+        const int leaf = m.tree.leaf_of_body[grabs[0].body];
+        EXPECT_EQ(ws.nodes_read, 2 * m.tree.depth[leaf] + 1);
+      }
+      EXPECT_EQ(ws.nodes_read, extended_region_size(m, grabs)) << "nf=" << nf;
+
+      // (2) snapshot from the pass WITH the user forces applied (β_ext and f_ext recovery).
+      Data d2(m);
+      forward_dynamics(m, d2, ref.st_applied);
+      make_coupling_snapshot(m, d2, grabs, fu, 12, st.t, snap_applied);
+      ws.reserve_for(snap_applied);
+      std::vector<Vec6> feed2(nf);
+      ASSERT_EQ(coupling_forces(snap_applied, fu.data(), ws, feed2.data()), CouplingStatus::kOk);
+      for (int g = 0; g < nf; ++g) worst_applied = std::max(worst_applied, rel6(feed2[g], ref.full[g]));
+      // ... and re-queried with other forces it matches a full pass with those forces.
+      const auto fu2 = random_forces(nf, rng, 20.0);
+      const Reference ref2 = reference(m, st, grabs, fu2, false);
+      ASSERT_EQ(coupling_forces(snap_applied, fu2.data(), ws, feed2.data()), CouplingStatus::kOk);
+      for (int g = 0; g < nf; ++g) worst_requery = std::max(worst_requery, rel6(feed2[g], ref2.full[g]));
+      ++cases;
+    }
+  }
+  EXPECT_LE(worst_full, 1e-10) << c.scene;
+  EXPECT_LE(worst_applied, 1e-10) << c.scene;
+  EXPECT_LE(worst_requery, 1e-10) << c.scene;
+  if (c.oracle) {
+    EXPECT_LE(worst_oracle, 1e-10) << c.scene;
+  }
+  RecordProperty("max_rel_err_full", std::to_string(worst_full));
+  RecordProperty("max_rel_err_oracle", std::to_string(worst_oracle));
+  RecordProperty("max_rel_err_applied", std::to_string(worst_applied));
+  RecordProperty("max_rel_err_requery", std::to_string(worst_requery));
+  std::printf("[ coupling ] %s n=%d: full %.2e  oracle %.2e  applied %.2e  requery %.2e (%d grab sets)\n",
+              c.scene.c_str(), c.n, worst_full, worst_oracle, worst_applied, worst_requery, cases);
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Scenes, CouplingVsFullPass,
+    ::testing::Values(Case{"chain", 1, false, false, true}, Case{"chain", 2, false, false, true},
+                      Case{"chain", 7, true, true, true}, Case{"chain", 64, false, false, true},
+                      Case{"chain", 64, true, true, true}, Case{"chain", 1024, false, false, false},
+                      Case{"random_tree", 16, true, true, true},
+                      Case{"random_tree", 64, true, true, true},
+                      Case{"random_tree", 400, true, true, false},
+                      Case{"binary_tree", 63, false, true, true},
+                      Case{"binary_tree", 511, false, false, false},
+                      Case{"star", 16, false, true, true},
+                      Case{"protein_like", 0, false, false, true}),
+    [](const auto& info) {
+      return info.param.scene + "_" + std::to_string(info.param.n) +
+             (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "");
+    });
+
+TEST(Coupling, JointOwnersOfTheGrabbedBodyLieInItsUpRegion) {
+  for (const char* scene : {"chain", "random_tree", "binary_tree", "protein_like", "star"}) {
+    SceneOptions o;
+    o.n = 200;
+    o.seed = 3;
+    o.mixed_joints = std::string(scene) == "random_tree";
+    auto model = make_scene(scene, o);
+    const auto& t = model->tree;
+    for (int k = 1; k < model->nbodies; ++k) {
+      const auto U = t.up_region(t.leaf_of_body[k]);
+      const std::set<int> Us(U.begin(), U.end());
+      std::vector<int> incident{k};
+      for (int c : model->children[k]) incident.push_back(c);
+      for (int J : incident) EXPECT_TRUE(Us.count(t.owner_of_joint[J])) << scene << " body " << k << " joint " << J;
+    }
+  }
+}
+
+TEST(Coupling, WeldedBodyFeedsBackMinusUserForce) {
+  // A body welded to the ground cannot accelerate: f_feed = f_ext + f_c = −f_u exactly.
+  ModelBuilder b;
+  b.add_body("w", 0, JointType::kFixed, Vec3(0.1, 0.2, 0.3), Mat3::Identity(), Vec3::UnitZ(), 2.0,
+             Vec3(0.1, 0, 0), Vec3(0.1, 0.2, 0.3).asDiagonal());
+  b.add_body("r", 1, JointType::kRevolute, Vec3(0.5, 0, 0), Mat3::Identity(), Vec3::UnitY(), 1.0,
+             Vec3(0.2, 0, 0), Vec3(0.01, 0.05, 0.05).asDiagonal());
+  auto model = b.build();
+  State st(*model);
+  st.qd(0) = 0.5;
+  Data d(*model);
+  forward_dynamics(*model, d, st);
+  CouplingSnapshot snap;
+  make_coupling_snapshot(*model, d, {make_grab(d, 1, Vec3(0.05, 0.1, 0))}, {}, 1, 0, snap);
+  CouplingWorkspace ws(snap);
+  Vec6 fu;
+  fu << 0.3, -0.2, 0.1, 4, -5, 6;
+  Vec6 feed;
+  ASSERT_EQ(coupling_forces(snap, &fu, ws, &feed), CouplingStatus::kOk);
+  EXPECT_LE((feed + fu).norm(), 1e-12 * fu.norm());
+}
+
+TEST(Coupling, FreeFloatingBodyFeedsBackOnlyItsExternalForce) {
+  // A free body (6-DOF root joint, no τ) has no constraint force: f_feed = f_ext (here weight).
+  SceneOptions o;
+  o.n = 1;
+  o.free_root = true;
+  o.seed = 4;
+  auto model = make_chain(o);
+  State st = random_state(*model, 9);
+  st.tau.setZero();
+  Data d(*model);
+  forward_dynamics(*model, d, st);
+  const Grab g = make_grab(d, 1, Vec3(0.1, -0.2, 0.05));
+  CouplingSnapshot snap;
+  make_coupling_snapshot(*model, d, {g}, {}, 1, 0, snap);
+  CouplingWorkspace ws(snap);
+  Vec6 fu;
+  fu << 0, 0, 0, 10, 20, -30;
+  Vec6 feed;
+  ASSERT_EQ(coupling_forces(snap, &fu, ws, &feed), CouplingStatus::kOk);
+  const Vec6 expect = shift_force(d.f_total[1], g.point - d.r[1]);
+  EXPECT_LE((feed - expect).norm(), 1e-12 * std::max(1.0, expect.norm()));
+}
+
+TEST(Coupling, NoAllocationPerCallOrPerSnapshotOnceSized) {
+  for (const char* scene : {"chain", "random_tree", "protein_like"}) {
+    SceneOptions o;
+    o.n = 500;
+    o.seed = 2;
+    o.mixed_joints = std::string(scene) == "random_tree";
+    o.free_root = o.mixed_joints;
+    auto model = make_scene(scene, o);
+    const State st = random_state(*model, 5);
+    Data d(*model);
+    forward_dynamics(*model, d, st);
+    std::mt19937 rng(3);
+    const auto grabs = random_grabs(*model, d, 4, rng);
+    const auto fu = random_forces(4, rng);
+    CouplingSnapshot snap;
+    make_coupling_snapshot(*model, d, grabs, fu, 1, 0, snap);   // sizes the snapshot
+    CouplingWorkspace ws(snap);
+    std::vector<Vec6> feed(4);
+    const long before = g_allocs.load();
+    for (int i = 0; i < 3; ++i) make_coupling_snapshot(*model, d, grabs, fu, 2 + i, 0, snap);
+    for (int i = 0; i < 100; ++i)
+      ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
+    EXPECT_EQ(g_allocs.load() - before, 0) << scene;
+  }
+}
+
+TEST(Coupling, Statuses) {
+  SceneOptions o;
+  o.n = 32;
+  o.seed = 1;
+  auto model = make_chain(o);
+  const State st = random_state(*model, 1);
+  Data d(*model);
+  forward_dynamics(*model, d, st);
+  CouplingSnapshot snap;
+  make_coupling_snapshot(*model, d, {}, {}, 1, 0, snap);
+  CouplingWorkspace ws;
+  Vec6 fu = Vec6::Ones(), feed;
+  EXPECT_EQ(coupling_forces(snap, &fu, ws, &feed), CouplingStatus::kEmpty);
+  make_coupling_snapshot(*model, d, {make_grab(d, 20, Vec3::Zero())}, {}, 2, 0, snap);
+  EXPECT_EQ(coupling_forces(snap, &fu, ws, &feed), CouplingStatus::kWorkspaceTooSmall);
+  ws.reserve_for(snap);
+  EXPECT_EQ(coupling_forces(snap, &fu, ws, &feed), CouplingStatus::kOk);
+  Vec6 bad = fu;
+  bad(4) = std::nan("");
+  EXPECT_EQ(coupling_forces(snap, &bad, ws, &feed), CouplingStatus::kNonFinite);
+  EXPECT_TRUE(feed.isZero());
+  {
+    CouplingSnapshot s2 = snap;
+    s2.values.pop_back();
+    EXPECT_EQ(coupling_forces(s2, &fu, ws, &feed), CouplingStatus::kBadSnapshot);
+  }
+  {
+    CouplingSnapshot s2 = snap;
+    s2.ints[0] = 7;
+    EXPECT_EQ(coupling_forces(s2, &fu, ws, &feed), CouplingStatus::kBadSnapshot);
+  }
+  {
+    CouplingSnapshot s2 = snap;   // corrupt a child index
+    s2.ints[kHeaderInts + kGrabInts + 2] = 1000;
+    EXPECT_EQ(coupling_forces(s2, &fu, ws, &feed), CouplingStatus::kBadSnapshot);
+  }
+  {
+    CouplingSnapshot s2 = snap;
+    s2.grabs.push_back(s2.grabs[0]);
+    EXPECT_EQ(coupling_forces(s2, &fu, ws, &feed), CouplingStatus::kBadSnapshot);
+  }
+  EXPECT_THROW(make_coupling_snapshot(*model, d, {Grab{0, Vec3::Zero(), Vec3::Zero()}}, {}, 3, 0, snap),
+               std::invalid_argument);
+  EXPECT_THROW(make_coupling_snapshot(*model, d, {make_grab(d, 3, Vec3::Zero())}, {fu, fu}, 3, 0, snap),
+               std::invalid_argument);
+}
+
+TEST(Coupling, SnapshotCarriesHeaderAndGrabData) {
+  SceneOptions o;
+  o.n = 100;
+  o.seed = 6;
+  auto model = make_chain(o);
+  const State st = random_state(*model, 2);
+  Data d(*model);
+  forward_dynamics(*model, d, st);
+  const Grab g = make_grab(d, 37, Vec3(0.1, 0.2, -0.1));
+  CouplingSnapshot snap;
+  make_coupling_snapshot(*model, d, {g}, {}, 42, 1.5, snap);
+  EXPECT_EQ(snap.model_fingerprint, model->fingerprint);
+  EXPECT_EQ(snap.version, 42);
+  EXPECT_EQ(snap.sim_time, 1.5);
+  ASSERT_EQ(snap.grabs.size(), 1u);
+  EXPECT_EQ(snap.ints[0], kSnapshotLayout);
+  EXPECT_EQ(snap.ints[2], model->tree.depth[model->tree.leaf_of_body[37]] + 1);   // |U|
+  EXPECT_LE((snapshot_grab_offset(snap, 0) - (g.point - d.r[37])).norm(), 1e-15);
+  EXPECT_LE((snapshot_grab_rotation(snap, 0) - d.R[37]).norm(), 1e-15);
+  EXPECT_LE((snapshot_grab_angular_velocity(snap, 0) - d.v[37].head<3>()).norm(), 1e-15);
+  // Point velocity from make_grab = body velocity shifted to the point.
+  const Vec3 vp = d.v[37].tail<3>() + d.v[37].head<3>().cross(g.point - d.r[37]);
+  EXPECT_LE((g.velocity - vp).norm(), 1e-12 * std::max(1.0, vp.norm()));
+  EXPECT_LT(snapshot_payload_bytes(snap), 60u * 1024u);
+}
+
+TEST(VirtualCoupling, ThreeDofSpringDamper) {
+  VirtualCoupling3 vc{200.0, 3.0};
+  const Vec3 xh(1, 2, 3), xs(0.5, 2.5, 3.25), vh(0.1, 0, -0.2), vs(0, 0.3, 0);
+  const Vec6 f = vc.user_force(xh, vh, xs, vs);
+  EXPECT_TRUE(f.head<3>().isZero());
+  EXPECT_LE((f.tail<3>() - (200.0 * (xh - xs) - 3.0 * (vh - vs))).norm(), 1e-12);
+}
+
+TEST(VirtualCoupling, SixDofRotationalSpring) {
+  VirtualCoupling6 vc;
+  vc.linear = {100.0, 0.0};
+  vc.k_r = 7.0;
+  vc.b_r = 0.5;
+  const Mat3 Rs = Eigen::AngleAxisd(0.7, Vec3(1, 2, 3).normalized()).toRotationMatrix();
+  const Mat3 Rh0 = Eigen::AngleAxisd(-1.1, Vec3(0, 1, 1).normalized()).toRotationMatrix();
+  vc.R_grab = Rs.transpose() * Rh0;   // captured at grab time
+  const Vec3 x(1, 1, 1), z = Vec3::Zero();
+  EXPECT_LE(vc.user_force(x, z, Rh0, z, x, z, Rs, z).norm(), 1e-12);   // aligned: no load
+  const Vec3 delta(0.01, -0.02, 0.015);                                 // device turned by δ
+  const Mat3 Rh = Eigen::AngleAxisd(delta.norm(), delta.normalized()).toRotationMatrix() * Rh0;
+  const Vec3 wh(0.3, 0, 0), ws(0, 0.1, 0);
+  const Vec6 f = vc.user_force(x, z, Rh, wh, x, z, Rs, ws);
+  EXPECT_LE((f.head<3>() - (7.0 * delta - 0.5 * (wh - ws))).norm(), 1e-12);
+  EXPECT_TRUE(f.tail<3>().isZero());
+  for (double ang : {1e-9, 0.3, 2.0, 3.14159, M_PI}) {
+    const Vec3 axis = Vec3(0.3, -0.5, 0.8).normalized();
+    const Vec3 w = rotation_log(Eigen::AngleAxisd(ang, axis).toRotationMatrix());
+    EXPECT_NEAR(w.norm(), ang, 1e-9);
+    if (ang < 3) {
+      EXPECT_LE((w - ang * axis).norm(), 1e-9);
+    }
+  }
+}
+
+TEST(VirtualCoupling, WorkspaceMappingIsTheOnePlaceForUnits) {
+  WorkspaceMapping map;
+  map.position_scale = 50.0;   // 1 m of device travel = 50 Å
+  map.force_scale = 0.02;      // N per scene force unit
+  map.torque_scale = 0.001;
+  map.time_scale = 2.0;
+  map.offset = Vec3(10, -5, 3);
+  map.rotation = Eigen::AngleAxisd(0.5, Vec3::UnitZ()).toRotationMatrix();
+  const Vec3 xd(0.01, -0.02, 0.03);
+  const Vec3 xs = map.device_to_scene_point(xd);
+  EXPECT_LE((xs - (map.offset + map.rotation * (50.0 * xd))).norm(), 1e-12);
+  EXPECT_LE((map.device_to_scene_velocity(xd) - map.rotation * (25.0 * xd)).norm(), 1e-12);
+  const Vec3 f(1, 2, 3);
+  const Vec3 fd = map.scene_to_device_force(f);
+  EXPECT_LE((map.rotation * fd / 0.02 - f).norm(), 1e-12);   // back to scene axes and units
+  EXPECT_LE((map.scene_to_device_torque(f) - 0.001 * map.rotation.transpose() * f).norm(), 1e-12);
+}
+
+}  // namespace
+}  // namespace haptree
