@@ -12,6 +12,7 @@ PKGS=(
   libsimbody-dev libbullet-dev                  # peer engines for the side-by-side benchmark (optional at build time)
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
+  tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
 )
 missing=()
 for p in "${PKGS[@]}"; do

@@ -1,0 +1,314 @@
+#include "haptree/molecule/forcefield.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace haptree::ff {
+
+namespace {
+
+// Switched nonbonded pair (not 1-4). Adds energy to ec/el and the force on i (−dE/dx_i) to f.
+inline void pair_kernel(const NonbondedOptions& o, double qq, double sig, double eps, const Vec3& d,
+                        double r2, double& ec, double& el, Vec3& f_i) {
+  const double r = std::sqrt(r2);
+  const double inv_r = 1.0 / r;
+  double Ec, dEc;
+  if (o.distance_dielectric) {
+    Ec = kCoulomb * qq / (40.0 * r2);
+    dEc = -2.0 * Ec * inv_r;
+  } else {
+    Ec = kCoulomb * qq * inv_r;
+    dEc = -Ec * inv_r;
+  }
+  const double sr2 = sig * sig / r2;
+  const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
+  const double El = 4.0 * eps * (s12 - s6);
+  const double dEl = 4.0 * eps * (-12.0 * s12 + 6.0 * s6) * inv_r;
+  double S = 1, dS = 0;
+  if (r > o.r_on) {
+    const double w = o.r_off - o.r_on;
+    const double x = (r - o.r_on) / w;
+    const double x2 = x * x, x3 = x2 * x;
+    S = 1 - 10 * x3 + 15 * x3 * x - 6 * x3 * x2;
+    dS = (-30 * x2 + 60 * x3 - 30 * x3 * x) / w;
+  }
+  ec += S * Ec;
+  el += S * El;
+  const double dE = S * (dEc + dEl) + dS * (Ec + El);
+  f_i = -dE * inv_r * d;   // d = x_i − x_j
+}
+
+inline void pair14_kernel(const NonbondedOptions& o, const mol::Pair14& p, const Vec3& d, double& ec,
+                          double& el, Vec3& f_i) {
+  const double r2 = d.squaredNorm();
+  const double r = std::sqrt(r2), inv_r = 1.0 / r;
+  double Ec, dEc;
+  if (o.distance_dielectric) {
+    Ec = kCoulomb * p.qq / (40.0 * r2);
+    dEc = -2.0 * Ec * inv_r;
+  } else {
+    Ec = kCoulomb * p.qq * inv_r;
+    dEc = -Ec * inv_r;
+  }
+  const double sr2 = p.sigma * p.sigma / r2;
+  const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
+  const double El = 4.0 * p.epsilon * (s12 - s6);
+  const double dEl = 4.0 * p.epsilon * (-12.0 * s12 + 6.0 * s6) * inv_r;
+  ec += Ec;
+  el += El;
+  f_i = -(dEc + dEl) * inv_r * d;
+}
+
+// Proper torsion k(1 + cos(nφ − phase)); φ IUPAC. Forces added to F (GROMACS do_dih_fup scheme).
+inline double torsion_kernel(const mol::Torsion& t, const std::vector<Vec3>& x,
+                             std::vector<Vec3>* F) {
+  const Vec3 r_ij = x[t.i] - x[t.j], r_kj = x[t.k] - x[t.j], r_kl = x[t.k] - x[t.l];
+  const Vec3 m = r_ij.cross(r_kj), n = r_kj.cross(r_kl);
+  const double nrkj2 = r_kj.squaredNorm(), nrkj = std::sqrt(nrkj2);
+  const double phi = std::atan2(nrkj * r_ij.dot(n), m.dot(n));
+  const double a = t.periodicity * phi - t.phase;
+  const double E = t.k_kJmol * (1 + std::cos(a));
+  if (F) {
+    const double ddphi = -t.k_kJmol * t.periodicity * std::sin(a);   // dE/dφ
+    const double m2 = m.squaredNorm(), n2 = n.squaredNorm();
+    const Vec3 f_i = -ddphi * nrkj / m2 * m;
+    const Vec3 f_l = ddphi * nrkj / n2 * n;
+    const double p = r_ij.dot(r_kj) / nrkj2, q = r_kl.dot(r_kj) / nrkj2;
+    const Vec3 svec = p * f_i - q * f_l;
+    const Vec3 f_j = f_i - svec, f_k = f_l + svec;
+    (*F)[t.i] += f_i;
+    (*F)[t.j] -= f_j;
+    (*F)[t.k] -= f_k;
+    (*F)[t.l] += f_l;
+  }
+  return E;
+}
+
+void build_exclusion_csr(const mol::Topology& t, std::vector<int>& adr, std::vector<int>& list) {
+  std::vector<std::vector<int>> part(t.natoms);
+  for (const auto& [a, b] : t.excluded) { part[a].push_back(b); part[b].push_back(a); }
+  for (const auto& p : t.pairs14) { part[p.i].push_back(p.j); part[p.j].push_back(p.i); }
+  adr.assign(t.natoms + 1, 0);
+  list.clear();
+  for (int a = 0; a < t.natoms; ++a) {
+    std::sort(part[a].begin(), part[a].end());
+    adr[a] = static_cast<int>(list.size());
+    list.insert(list.end(), part[a].begin(), part[a].end());
+  }
+  adr[t.natoms] = static_cast<int>(list.size());
+}
+
+}  // namespace
+
+double evaluate_all_pairs(const mol::Topology& t, const NonbondedOptions& o,
+                          const std::vector<Vec3>& x, std::vector<Vec3>* F, EnergyTerms* terms) {
+  const int n = t.natoms;
+  EnergyTerms e;
+  if (F) F->assign(n, Vec3::Zero());
+  std::vector<int> adr, list;
+  build_exclusion_csr(t, adr, list);
+  std::vector<int> mark(n, -1);
+  std::vector<double> sqeps(n);
+  for (int a = 0; a < n; ++a) sqeps[a] = std::sqrt(t.epsilon[a]);
+  const double roff2 = o.r_off * o.r_off;
+  for (int i = 0; i < n; ++i) {
+    for (int k = adr[i]; k < adr[i + 1]; ++k) mark[list[k]] = i;
+    for (int j = i + 1; j < n; ++j) {
+      if (mark[j] == i) continue;
+      const Vec3 d = x[i] - x[j];
+      const double r2 = d.squaredNorm();
+      if (r2 >= roff2) continue;
+      Vec3 f;
+      pair_kernel(o, t.charge[i] * t.charge[j], 0.5 * (t.sigma[i] + t.sigma[j]), sqeps[i] * sqeps[j],
+                  d, r2, e.coulomb, e.lj, f);
+      if (F) { (*F)[i] += f; (*F)[j] -= f; }
+    }
+  }
+  for (const auto& p : t.pairs14) {
+    Vec3 f;
+    pair14_kernel(o, p, x[p.i] - x[p.j], e.coulomb14, e.lj14, f);
+    if (F) { (*F)[p.i] += f; (*F)[p.j] -= f; }
+  }
+  for (const auto& tr : t.torsions) e.torsion += torsion_kernel(tr, x, F);
+  if (terms) *terms = e;
+  return e.total();
+}
+
+Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::vector<Vec3> atom_local,
+                     const std::vector<Vec3>& x0, const NonbondedOptions& o)
+    : o_(o), n_(t.natoms), body_(std::move(atom_body)), local_(std::move(atom_local)) {
+  if (static_cast<int>(body_.size()) != n_ || static_cast<int>(x0.size()) != n_)
+    throw std::invalid_argument("ff::Evaluator: atom_body / positions size differs from the topology");
+  if (local_.empty()) local_.assign(n_, Vec3::Zero());
+  q_ = t.charge;
+  sig_ = t.sigma;
+  sqeps_.resize(n_);
+  for (int a = 0; a < n_; ++a) sqeps_[a] = std::sqrt(t.epsilon[a]);
+  build_exclusion_csr(t, ex_adr_, ex_list_);
+  // Terms inside one rigid body are constant: evaluate them once here and skip them afterwards.
+  EnergyTerms c;
+  for (const auto& p : t.pairs14) {
+    if (body_[p.i] != body_[p.j]) { p14_.push_back(p); continue; }
+    Vec3 f;
+    pair14_kernel(o_, p, x0[p.i] - x0[p.j], c.coulomb14, c.lj14, f);
+  }
+  for (const auto& tr : t.torsions) {
+    if (body_[tr.i] == body_[tr.j] && body_[tr.j] == body_[tr.k] && body_[tr.k] == body_[tr.l]) {
+      c.torsion += torsion_kernel(tr, x0, nullptr);
+      continue;
+    }
+    tors_.push_back(tr);
+  }
+  {
+    // Intra-body switched pairs: group atoms by body.
+    std::vector<std::vector<int>> members;
+    int maxb = 0;
+    for (int b : body_) maxb = std::max(maxb, b);
+    members.resize(maxb + 1);
+    for (int a = 0; a < n_; ++a) members[body_[a]].push_back(a);
+    const double roff2 = o_.r_off * o_.r_off;
+    for (const auto& mem : members)
+      for (size_t x = 0; x < mem.size(); ++x)
+        for (size_t y = x + 1; y < mem.size(); ++y) {
+          const int i = mem[x], j = mem[y];
+          if (std::binary_search(ex_list_.begin() + ex_adr_[i], ex_list_.begin() + ex_adr_[i + 1], j))
+            continue;
+          const Vec3 d = x0[i] - x0[j];
+          const double r2 = d.squaredNorm();
+          if (r2 >= roff2) continue;
+          Vec3 f;
+          pair_kernel(o_, q_[i] * q_[j], 0.5 * (sig_[i] + sig_[j]), sqeps_[i] * sqeps_[j], d, r2,
+                      c.coulomb, c.lj, f);
+        }
+  }
+  e_const_ = c.coulomb + c.coulomb14 + c.lj + c.lj14 + c.torsion;
+  x_ = x0;
+  F_.assign(n_, Vec3::Zero());
+  x_ref_.assign(n_, Vec3::Zero());
+  cell_next_.assign(n_, -1);
+  cell_head_.assign(std::max(64, 2 * n_), -1);
+  build_list(x0);
+  const size_t cap = 2 * npairs_ + 1024;
+  if (pi_.size() < cap) { pi_.resize(cap); pj_.resize(cap); }
+  rebuilds_ = 0;
+}
+
+void Evaluator::build_list(const std::vector<Vec3>& x) {
+  ++rebuilds_;
+  const double rl = o_.r_off + o_.skin;
+  Vec3 lo = x[0], hi = x[0];
+  for (int a = 1; a < n_; ++a) { lo = lo.cwiseMin(x[a]); hi = hi.cwiseMax(x[a]); }
+  const Vec3 ext = (hi - lo).cwiseMax(Vec3::Constant(1e-9));
+  double cs = rl;
+  int nc[3];
+  const long cap = static_cast<long>(cell_head_.size());
+  for (;;) {
+    long total = 1;
+    for (int k = 0; k < 3; ++k) {
+      nc[k] = std::max(1, static_cast<int>(std::floor(ext(k) / cs)));
+      total *= nc[k];
+    }
+    if (total <= cap) break;
+    cs *= 1.26;
+  }
+  Vec3 inv;
+  for (int k = 0; k < 3; ++k) inv(k) = nc[k] / ext(k) * (1 - 1e-12);
+  std::fill(cell_head_.begin(), cell_head_.begin() + static_cast<long>(nc[0]) * nc[1] * nc[2], -1);
+  auto cell_of = [&](const Vec3& p, int c[3]) {
+    for (int k = 0; k < 3; ++k)
+      c[k] = std::min(nc[k] - 1, std::max(0, static_cast<int>((p(k) - lo(k)) * inv(k))));
+  };
+  for (int a = n_ - 1; a >= 0; --a) {
+    int c[3];
+    cell_of(x[a], c);
+    const int id = (c[2] * nc[1] + c[1]) * nc[0] + c[0];
+    cell_next_[a] = cell_head_[id];
+    cell_head_[id] = a;
+  }
+  const double rl2 = rl * rl;
+  size_t np = 0;
+  for (int i = 0; i < n_; ++i) {
+    int c[3];
+    cell_of(x[i], c);
+    const int* eb = ex_list_.data() + ex_adr_[i];
+    const int* ee = ex_list_.data() + ex_adr_[i + 1];
+    for (int dz = -1; dz <= 1; ++dz) {
+      const int z = c[2] + dz;
+      if (z < 0 || z >= nc[2]) continue;
+      for (int dy = -1; dy <= 1; ++dy) {
+        const int y = c[1] + dy;
+        if (y < 0 || y >= nc[1]) continue;
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int xx = c[0] + dx;
+          if (xx < 0 || xx >= nc[0]) continue;
+          for (int j = cell_head_[(z * nc[1] + y) * nc[0] + xx]; j >= 0; j = cell_next_[j]) {
+            if (j <= i || body_[j] == body_[i]) continue;
+            if ((x[i] - x[j]).squaredNorm() >= rl2) continue;
+            if (std::binary_search(eb, ee, j)) continue;
+            if (np == pi_.size()) {   // grows only beyond 2x the setup size
+              pi_.resize(2 * np + 1024);
+              pj_.resize(2 * np + 1024);
+            }
+            pi_[np] = i;
+            pj_[np] = j;
+            ++np;
+          }
+        }
+      }
+    }
+  }
+  npairs_ = np;
+  for (int a = 0; a < n_; ++a) x_ref_[a] = x[a];
+  list_valid_ = true;
+}
+
+double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
+  if (list_valid_) {
+    const double lim2 = 0.25 * o_.skin * o_.skin;
+    for (int a = 0; a < n_; ++a)
+      if ((x[a] - x_ref_[a]).squaredNorm() > lim2) { list_valid_ = false; break; }
+  }
+  if (!list_valid_) build_list(x);
+  if (static_cast<int>(F.size()) != n_) F.resize(n_);
+  for (auto& f : F) f.setZero();
+  EnergyTerms e;
+  const double roff2 = o_.r_off * o_.r_off;
+  for (size_t p = 0; p < npairs_; ++p) {
+    const int i = pi_[p], j = pj_[p];
+    const Vec3 d = x[i] - x[j];
+    const double r2 = d.squaredNorm();
+    if (r2 >= roff2) continue;
+    Vec3 f;
+    pair_kernel(o_, q_[i] * q_[j], 0.5 * (sig_[i] + sig_[j]), sqeps_[i] * sqeps_[j], d, r2,
+                e.coulomb, e.lj, f);
+    F[i] += f;
+    F[j] -= f;
+  }
+  for (const auto& p : p14_) {
+    Vec3 f;
+    pair14_kernel(o_, p, x[p.i] - x[p.j], e.coulomb14, e.lj14, f);
+    F[p.i] += f;
+    F[p.j] -= f;
+  }
+  for (const auto& tr : tors_) e.torsion += torsion_kernel(tr, x, &F);
+  e.rigid_constant = e_const_;
+  terms_ = e;
+  if (terms) *terms = e;
+  return e.total();
+}
+
+double Evaluator::compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext) {
+  for (int a = 0; a < n_; ++a) x_[a] = data.r[body_[a]] + data.R[body_[a]] * local_[a];
+  const double E = compute_atoms(x_, F_, nullptr);
+  if (static_cast<int>(f_ext.size()) != model.nbodies) f_ext.resize(model.nbodies);
+  for (auto& f : f_ext) f.setZero();
+  for (int a = 0; a < n_; ++a) {
+    const int b = body_[a];
+    const Vec3 arm = x_[a] - data.r[b];
+    f_ext[b].head<3>() += arm.cross(F_[a]);
+    f_ext[b].tail<3>() += F_[a];
+  }
+  return E;
+}
+
+}  // namespace haptree::ff
