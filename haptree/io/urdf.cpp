@@ -1,0 +1,256 @@
+#include "haptree/io/urdf.hpp"
+
+#include <cmath>
+#include <fstream>
+#include <sstream>
+#include <vector>
+
+#include <console_bridge/console.h>
+#include <urdf_parser/urdf_parser.h>
+
+#include <Eigen/Eigenvalues>
+
+namespace haptree::io {
+
+namespace {
+
+// Captures urdfdom's console_bridge messages so a parse failure becomes one exception line
+// instead of text on stderr.
+class CaptureHandler : public console_bridge::OutputHandler {
+ public:
+  void log(const std::string& text, console_bridge::LogLevel level, const char*, int) override {
+    if (level >= console_bridge::CONSOLE_BRIDGE_LOG_ERROR && first_error.empty()) first_error = text;
+  }
+  std::string first_error;
+};
+
+struct ScopedCapture {
+  CaptureHandler handler;
+  ScopedCapture() { console_bridge::useOutputHandler(&handler); }
+  ~ScopedCapture() { console_bridge::restorePreviousOutputHandler(); }
+};
+
+std::string one_line(std::string s) {
+  for (char& c : s)
+    if (c == '\n' || c == '\r') c = ' ';
+  while (!s.empty() && s.back() == ' ') s.pop_back();
+  return s;
+}
+
+Mat3 to_mat(const urdf::Rotation& r) {
+  return Quat(r.w, r.x, r.y, r.z).normalized().toRotationMatrix();
+}
+Vec3 to_vec(const urdf::Vector3& v) { return Vec3(v.x, v.y, v.z); }
+
+// Mass properties in one body frame.
+struct MassProps {
+  double mass = 0;
+  Vec3 com = Vec3::Zero();
+  Mat3 inertia = Mat3::Zero();   // about the COM
+};
+
+Mat3 parallel_axis(double m, const Vec3& d) {
+  return m * (d.squaredNorm() * Mat3::Identity() - d * d.transpose());
+}
+
+void combine(MassProps& acc, const MassProps& add) {
+  if (add.mass <= 0) return;
+  const double m = acc.mass + add.mass;
+  const Vec3 c = (acc.mass * acc.com + add.mass * add.com) / m;
+  acc.inertia = acc.inertia + parallel_axis(acc.mass, acc.com - c) + add.inertia +
+                parallel_axis(add.mass, add.com - c);
+  acc.com = c;
+  acc.mass = m;
+}
+
+struct BodyRec {
+  std::string name, joint_name;
+  int parent;   // index into recs; -1 = ground
+  JointType type;
+  Vec3 offset;
+  Mat3 rotation;
+  Vec3 axis;
+  MassProps mp;
+};
+
+class Converter {
+ public:
+  Converter(const std::string& source, const UrdfOptions& o) : src_(source), opt_(o) {}
+
+  std::shared_ptr<const Model> run(const urdf::ModelInterface& urdf) {
+    const auto root = urdf.getRoot();
+    if (!root) fail("robot", urdf.getName(), "no root link");
+    if (root->name == "world") {
+      if (opt_.floating_base)
+        fail("link", "world", "floating_base is set but the root link is \"world\": declare a "
+                              "floating joint from world instead");
+      visit_children(*root, -1, Mat3::Identity(), Vec3::Zero());
+    } else {
+      const JointType t = opt_.floating_base ? JointType::kFree : JointType::kFixed;
+      attach(*root, opt_.root_joint_name, "root", t, -1, Mat3::Identity(), Vec3::Zero(),
+             Vec3::UnitZ());
+    }
+    if (recs_.empty()) fail("robot", urdf.getName(), "no body with mass is attached to the ground");
+    ModelBuilder b;
+    b.set_gravity(opt_.gravity);
+    for (size_t i = 0; i < recs_.size(); ++i) {
+      const BodyRec& r = recs_[i];
+      try {
+        b.add_body(r.name, r.parent + 1, r.type, r.offset, r.rotation, r.axis, r.mp.mass, r.mp.com,
+                   r.mp.inertia, r.joint_name);
+      } catch (const ModelError& e) {
+        fail("link", r.name, e.what());
+      }
+    }
+    try {
+      return b.build(opt_.build);
+    } catch (const ModelError& e) {
+      throw UrdfError(src_ + ": " + one_line(e.what()));
+    }
+  }
+
+ private:
+  [[noreturn]] void fail(const std::string& element, const std::string& name,
+                         const std::string& what) const {
+    throw UrdfError(src_ + ": " + element + " '" + name + "': " + one_line(what));
+  }
+
+  MassProps link_mass(const urdf::Link& link) const {
+    MassProps mp;
+    if (!link.inertial) return mp;
+    const urdf::Inertial& in = *link.inertial;
+    if (!std::isfinite(in.mass) || in.mass < 0)
+      fail("link", link.name, "<inertial><mass> must be finite and non-negative, got " +
+                                  std::to_string(in.mass));
+    if (in.mass == 0) return mp;
+    Mat3 I;
+    I << in.ixx, in.ixy, in.ixz, in.ixy, in.iyy, in.iyz, in.ixz, in.iyz, in.izz;
+    if (!I.allFinite()) fail("link", link.name, "<inertial><inertia> is not finite");
+    Eigen::SelfAdjointEigenSolver<Mat3> es(I);
+    const Vec3 ev = es.eigenvalues();
+    if (ev(0) <= 1e-14 * std::max(1.0, ev(2)) || ev(0) + ev(1) < ev(2) * (1 - 1e-9)) {
+      std::ostringstream os;
+      os << "<inertial><inertia> must be positive definite and satisfy the triangle inequality "
+            "(principal moments "
+         << ev(0) << ", " << ev(1) << ", " << ev(2) << ")";
+      fail("link", link.name, os.str());
+    }
+    const Mat3 R = to_mat(in.origin.rotation);
+    mp.mass = in.mass;
+    mp.com = to_vec(in.origin.position);
+    mp.inertia = R * I * R.transpose();
+    return mp;
+  }
+
+  // Attaches `link` to body `parent` (-1 = ground) with a joint whose frame in the parent body is
+  // (R, p). `frame_*` describe the link frame in its body.
+  void attach(const urdf::Link& link, const std::string& joint_name, const std::string& element,
+              JointType type, int parent, const Mat3& R, const Vec3& p, const Vec3& axis) {
+    MassProps mp = link_mass(link);
+    const bool massless = !(mp.mass > 0);
+    if (type == JointType::kFixed && (massless || opt_.lump_fixed)) {
+      // Lump: the link is a frame of the parent body.
+      if (parent >= 0 && !massless) {
+        MassProps moved;
+        moved.mass = mp.mass;
+        moved.com = p + R * mp.com;
+        moved.inertia = R * mp.inertia * R.transpose();
+        combine(recs_[parent].mp, moved);
+      }
+      visit_children(link, parent, R, p);
+      return;
+    }
+    if (massless)
+      fail("link", link.name,
+           std::string("has no mass (no <inertial> or mass 0) but is attached by the moving ") +
+               element + " '" + joint_name +
+               "'; haptree needs positive mass on every moving body (give it an <inertial>, or "
+               "attach it by a fixed joint to be lumped)");
+    BodyRec rec{link.name, joint_name, parent, type, p, R, axis, mp};
+    recs_.push_back(rec);
+    visit_children(link, static_cast<int>(recs_.size()) - 1, Mat3::Identity(), Vec3::Zero());
+  }
+
+  // Children of `link`, whose frame is (R, p) in body `body`.
+  void visit_children(const urdf::Link& link, int body, const Mat3& R, const Vec3& p) {
+    for (const auto& j : link.child_joints) {
+      const auto child = link_of(j->child_link_name);
+      JointType t = JointType::kFixed;
+      switch (j->type) {
+        case urdf::Joint::REVOLUTE:
+        case urdf::Joint::CONTINUOUS: t = JointType::kRevolute; break;
+        case urdf::Joint::PRISMATIC: t = JointType::kPrismatic; break;
+        case urdf::Joint::FIXED: t = JointType::kFixed; break;
+        case urdf::Joint::FLOATING: t = JointType::kFree; break;
+        case urdf::Joint::PLANAR:
+          fail("joint", j->name, "type \"planar\" is not supported");
+        default: fail("joint", j->name, "unknown joint type");
+      }
+      const urdf::Pose& o = j->parent_to_joint_origin_transform;
+      const Mat3 Rj = R * to_mat(o.rotation);
+      const Vec3 pj = p + R * to_vec(o.position);
+      Vec3 axis = to_vec(j->axis);
+      if ((t == JointType::kRevolute || t == JointType::kPrismatic) &&
+          (!axis.allFinite() || axis.norm() < 1e-12))
+        fail("joint", j->name, "<axis> is zero or not finite");
+      if (t != JointType::kRevolute && t != JointType::kPrismatic) axis = Vec3::UnitZ();
+      attach(*child, j->name, "joint", t, body, Rj, pj, axis);
+    }
+  }
+
+  const urdf::Link* link_of(const std::string& name) const {
+    auto it = model_links_->find(name);
+    if (it == model_links_->end()) fail("link", name, "not found");
+    return it->second.get();
+  }
+
+ public:
+  const std::map<std::string, urdf::LinkSharedPtr>* model_links_ = nullptr;
+
+ private:
+  std::string src_;
+  UrdfOptions opt_;
+  std::vector<BodyRec> recs_;
+};
+
+}  // namespace
+
+std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::string& source,
+                                        const UrdfOptions& options) {
+  {
+    // XML well-formedness first, so the message carries the line and column.
+    TiXmlDocument doc;
+    doc.Parse(xml.c_str());
+    if (doc.Error())
+      throw UrdfError(source + ":" + std::to_string(doc.ErrorRow()) + ":" +
+                      std::to_string(doc.ErrorCol()) + ": XML parse error: " +
+                      one_line(doc.ErrorDesc()));
+  }
+  urdf::ModelInterfaceSharedPtr urdf;
+  std::string err;
+  {
+    ScopedCapture capture;
+    try {
+      urdf = urdf::parseURDF(xml);
+    } catch (const std::exception& e) {
+      err = e.what();
+    }
+    if (err.empty()) err = capture.handler.first_error;
+  }
+  if (!urdf)
+    throw UrdfError(source + ": URDF parse error: " + one_line(err.empty() ? "unknown" : err));
+  Converter c(source, options);
+  c.model_links_ = &urdf->links_;
+  return c.run(*urdf);
+}
+
+std::shared_ptr<const Model> load_urdf(const std::string& path, const UrdfOptions& options) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw UrdfError(path + ": cannot open URDF file");
+  std::ostringstream ss;
+  ss << in.rdbuf();
+  if (in.bad()) throw UrdfError(path + ": cannot read URDF file");
+  return parse_urdf(ss.str(), path, options);
+}
+
+}  // namespace haptree::io
