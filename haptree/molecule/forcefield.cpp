@@ -186,10 +186,15 @@ Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::ve
   F_.assign(n_, Vec3::Zero());
   x_ref_.assign(n_, Vec3::Zero());
   cell_next_.assign(n_, -1);
+  row_.assign(n_ + 1, 0);
   cell_head_.assign(std::max(64, 2 * n_), -1);
+  key_ = body_;
+  new_key_ = body_;
+  p14_act_ = p14_;
+  tors_act_ = tors_;
   build_list(x0);
   const size_t cap = 2 * npairs_ + 1024;
-  if (pi_.size() < cap) { pi_.resize(cap); pj_.resize(cap); }
+  if (pj_.size() < cap) pj_.resize(cap);
   rebuilds_ = 0;
 }
 
@@ -228,6 +233,7 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
   const double rl2 = rl * rl;
   size_t np = 0;
   for (int i = 0; i < n_; ++i) {
+    row_[i] = static_cast<int>(np);
     int c[3];
     cell_of(x[i], c);
     const int* eb = ex_list_.data() + ex_adr_[i];
@@ -242,14 +248,10 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
           const int xx = c[0] + dx;
           if (xx < 0 || xx >= nc[0]) continue;
           for (int j = cell_head_[(z * nc[1] + y) * nc[0] + xx]; j >= 0; j = cell_next_[j]) {
-            if (j <= i || body_[j] == body_[i]) continue;
+            if (j <= i || key_[j] == key_[i]) continue;
             if ((x[i] - x[j]).squaredNorm() >= rl2) continue;
             if (std::binary_search(eb, ee, j)) continue;
-            if (np == pi_.size()) {   // grows only beyond 2x the setup size
-              pi_.resize(2 * np + 1024);
-              pj_.resize(2 * np + 1024);
-            }
-            pi_[np] = i;
+            if (np == pj_.size()) pj_.resize(2 * np + 1024);   // only beyond 2x the setup size
             pj_[np] = j;
             ++np;
           }
@@ -257,12 +259,14 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
       }
     }
   }
+  row_[n_] = static_cast<int>(np);
   npairs_ = np;
   for (int a = 0; a < n_; ++a) x_ref_[a] = x[a];
   list_valid_ = true;
 }
 
 double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
+  if (&x != &x_) x_ = x;   // same size: no allocation
   if (list_valid_) {
     const double lim2 = 0.25 * o_.skin * o_.skin;
     for (int a = 0; a < n_; ++a)
@@ -273,29 +277,120 @@ double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F
   for (auto& f : F) f.setZero();
   EnergyTerms e;
   const double roff2 = o_.r_off * o_.r_off;
-  for (size_t p = 0; p < npairs_; ++p) {
-    const int i = pi_[p], j = pj_[p];
-    const Vec3 d = x[i] - x[j];
-    const double r2 = d.squaredNorm();
-    if (r2 >= roff2) continue;
-    Vec3 f;
-    pair_kernel(o_, q_[i] * q_[j], 0.5 * (sig_[i] + sig_[j]), sqeps_[i] * sqeps_[j], d, r2,
-                e.coulomb, e.lj, f);
-    F[i] += f;
-    F[j] -= f;
+  // Per-atom neighbour rows (CSR): x_i and its parameters are loaded once per row. Only the
+  // switch needs r itself; Coulomb (ε = 4r) and LJ are evaluated from r².
+  const double ron2 = o_.r_on * o_.r_on, w = o_.r_off - o_.r_on, inv_w = 1.0 / w;
+  const double kq = o_.distance_dielectric ? kCoulomb / 40.0 : kCoulomb;
+  const bool ddd = o_.distance_dielectric;
+  double ec = 0, el = 0;
+  for (int i = 0; i < n_; ++i) {
+    const int b = row_[i], end = row_[i + 1];
+    if (b == end) continue;
+    const Vec3 xi = x[i];
+    const double qi = kq * q_[i], si = sig_[i], ei = sqeps_[i];
+    Vec3 Fi = Vec3::Zero();
+    for (int p = b; p < end; ++p) {
+      const int j = pj_[p];
+      const Vec3 d = xi - x[j];
+      const double r2 = d.squaredNorm();
+      if (r2 >= roff2) continue;
+      const double inv_r2 = 1.0 / r2;
+      double Ec, dEc_r;   // E and (dE/dr)/r
+      if (ddd) {
+        Ec = qi * q_[j] * inv_r2;
+        dEc_r = -2.0 * Ec * inv_r2;
+      } else {
+        const double inv_r = std::sqrt(inv_r2);
+        Ec = qi * q_[j] * inv_r;
+        dEc_r = -Ec * inv_r2;
+      }
+      const double sg = 0.5 * (si + sig_[j]);
+      const double sr2 = sg * sg * inv_r2;
+      const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
+      const double e4 = 4.0 * ei * sqeps_[j];
+      const double El = e4 * (s12 - s6);
+      double dE_r = dEc_r + e4 * (-12.0 * s12 + 6.0 * s6) * inv_r2;
+      double Etot = Ec + El;
+      if (r2 > ron2) {
+        const double r = std::sqrt(r2);
+        const double xs = (r - o_.r_on) * inv_w;
+        const double x2 = xs * xs, x3 = x2 * xs;
+        const double S = 1 - 10 * x3 + 15 * x3 * xs - 6 * x3 * x2;
+        const double dS = (-30 * x2 + 60 * x3 - 30 * x3 * xs) * inv_w;
+        dE_r = S * dE_r + dS * Etot / r;
+        ec += S * Ec;
+        el += S * El;
+      } else {
+        ec += Ec;
+        el += El;
+      }
+      const Vec3 f = -dE_r * d;
+      Fi += f;
+      F[j] -= f;
+    }
+    F[i] += Fi;
   }
-  for (const auto& p : p14_) {
+  e.coulomb = ec;
+  e.lj = el;
+  for (const auto& p : p14_act_) {
     Vec3 f;
     pair14_kernel(o_, p, x[p.i] - x[p.j], e.coulomb14, e.lj14, f);
     F[p.i] += f;
     F[p.j] -= f;
   }
-  for (const auto& tr : tors_) e.torsion += torsion_kernel(tr, x, &F);
-  e.rigid_constant = e_const_;
+  for (const auto& tr : tors_act_) e.torsion += torsion_kernel(tr, x, &F);
+  e.rigid_constant = e_const_ + e_region_;
   terms_ = e;
   if (terms) *terms = e;
   return e.total();
 }
+
+void Evaluator::set_rigid_regions(const std::vector<int>& body_region) {
+  // Full list (keys = bodies) at the last positions, so every pair that becomes region-internal is
+  // seen, including those skipped under the previous regions.
+  key_ = body_;
+  build_list(x_);
+  const int nb = static_cast<int>(body_region.size());
+  for (int a = 0; a < n_; ++a) {
+    const int b = body_[a];
+    const int r = b < nb ? body_region[b] : -1;
+    new_key_[a] = r >= 0 ? r : nb + b;   // bodies outside every region keep their own key
+  }
+  // Energy of the terms that become internal to a region (constant while the regions hold).
+  double e = 0;
+  const double roff2 = o_.r_off * o_.r_off;
+  for (int i = 0; i < n_; ++i)
+    for (int p = row_[i]; p < row_[i + 1]; ++p) {
+      const int j = pj_[p];
+      if (new_key_[i] != new_key_[j]) continue;
+      const Vec3 d = x_[i] - x_[j];
+      const double r2 = d.squaredNorm();
+      if (r2 >= roff2) continue;
+      double ec = 0, el = 0;
+      Vec3 f;
+      pair_kernel(o_, q_[i] * q_[j], 0.5 * (sig_[i] + sig_[j]), sqeps_[i] * sqeps_[j], d, r2, ec, el, f);
+      e += ec + el;
+    }
+  p14_act_.clear();
+  for (const auto& p : p14_) {
+    if (new_key_[p.i] != new_key_[p.j]) { p14_act_.push_back(p); continue; }
+    double ec = 0, el = 0;
+    Vec3 f;
+    pair14_kernel(o_, p, x_[p.i] - x_[p.j], ec, el, f);
+    e += ec + el;
+  }
+  tors_act_.clear();
+  for (const auto& t : tors_) {
+    const int k = new_key_[t.i];
+    if (new_key_[t.j] == k && new_key_[t.k] == k && new_key_[t.l] == k) e += torsion_kernel(t, x_, nullptr);
+    else tors_act_.push_back(t);
+  }
+  e_region_ = e;
+  key_.swap(new_key_);
+  build_list(x_);
+}
+
+void Evaluator::clear_rigid_regions() { set_rigid_regions({}); }
 
 double Evaluator::compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext) {
   for (int a = 0; a < n_; ++a) x_[a] = data.r[body_[a]] + data.R[body_[a]] * local_[a];

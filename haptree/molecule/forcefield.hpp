@@ -16,7 +16,7 @@ constexpr double kCoulomb = 138.935456;   // kJ mol⁻¹ nm e⁻² (OpenMM's)
 
 struct NonbondedOptions {
   double r_on = 0.8, r_off = 1.0;   // nm, switch
-  double skin = 0.2;                // nm, Verlet skin; the list is rebuilt when an atom moved > skin/2
+  double skin = 0.1;                // nm, Verlet skin; the list is rebuilt when an atom moved > skin/2
   bool distance_dielectric = true;  // ε(r) = 4r (Å); false: ε = 1
 };
 
@@ -49,13 +49,21 @@ class Evaluator {
   // model.nbodies; bodies without atoms get zero). Returns the potential energy (kJ/mol).
   double compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext);
 
+  // Adaptive dynamics: bodies with the same region id (>= 0) move as one rigid body (e.g.
+  // AdaptiveData::frontier_of_body after a selection). Until the next call, terms inside one region
+  // are skipped; their energy (at the positions of the last compute) is added as a constant. Body
+  // wrenches then lack the region-internal forces, whose sum over the region is zero (they cancel
+  // in the composite rigid body). O(pairs); does not allocate. Empty vector = no regions.
+  void set_rigid_regions(const std::vector<int>& body_region);
+  void clear_rigid_regions();
+
   const std::vector<Vec3>& positions() const { return x_; }
   const std::vector<Vec3>& atom_forces() const { return F_; }
   const EnergyTerms& last_terms() const { return terms_; }
   int neighbour_rebuilds() const { return rebuilds_; }
   size_t neighbour_pairs() const { return npairs_; }
-  size_t active_torsions() const { return tors_.size(); }
-  size_t active_pairs14() const { return p14_.size(); }
+  size_t active_torsions() const { return tors_act_.size(); }
+  size_t active_pairs14() const { return p14_act_.size(); }
   double rigid_constant() const { return e_const_; }
 
  private:
@@ -68,9 +76,12 @@ class Evaluator {
   std::vector<int> ex_adr_, ex_list_;   // CSR of excluded partners (1-2, 1-3, 1-4), sorted
   std::vector<mol::Pair14> p14_;
   std::vector<mol::Torsion> tors_;
-  double e_const_ = 0;
+  double e_const_ = 0, e_region_ = 0;
+  std::vector<int> key_, new_key_;   // per atom: pairs with equal keys are skipped (body or region)
+  std::vector<mol::Pair14> p14_act_;
+  std::vector<mol::Torsion> tors_act_;
   // neighbour list
-  std::vector<int> pi_, pj_;
+  std::vector<int> row_, pj_;   // CSR: partners of atom i are pj_[row_[i] .. row_[i+1])
   size_t npairs_ = 0;
   std::vector<Vec3> x_ref_;
   std::vector<int> cell_head_, cell_next_;

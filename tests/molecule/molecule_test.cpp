@@ -506,3 +506,41 @@ TEST(MoleculeScene, NamesResolveAndFreeRootAddsSixDof) {
   const MolecularScene sc = load_molecular_scene("ala20", o);
   EXPECT_EQ(sc.model->nv, 46);
 }
+
+TEST(MoleculeForceField, RigidRegionsKeepEnergyAndRegionWrenches) {
+  for (const char* name : {"ala20", "bacteriorhodopsin"}) {
+    MolecularScene sc = load_molecular_scene(name);
+    const Model& m = *sc.model;
+    Data d(m);
+    Eigen::VectorXd q = neutral_configuration(m);
+    for (int k = 0; k < q.size(); ++k) q(k) += 0.01 * std::sin(0.9 * k);
+    forward_kinematics(m, d, q);
+    std::vector<Vec6> f_full, f_reg;
+    const double E_full = sc.compute(d, f_full);
+    std::vector<int> region(m.nbodies);
+    for (int b = 0; b < m.nbodies; ++b) region[b] = b / 5;   // blocks of 5 consecutive bodies
+    region[3] = -1;                                            // one body outside every region
+    sc.force_field->set_rigid_regions(region);
+    const double E_reg = sc.compute(d, f_reg);
+    EXPECT_NEAR(E_reg, E_full, 1e-9 * std::abs(E_full)) << name;
+    // Region wrenches about the world origin are unchanged.
+    std::map<int, Vec6> a, b;
+    for (int k = 1; k < m.nbodies; ++k) {
+      const int key = region[k] >= 0 ? region[k] : 100000 + k;
+      if (!a.count(key)) { a[key].setZero(); b[key].setZero(); }
+      a[key] += shift_force(f_full[k], -d.r[k]);
+      b[key] += shift_force(f_reg[k], -d.r[k]);
+    }
+    double err = 0, scale = 0;
+    for (auto& [key, w] : a) {
+      err = std::max(err, (w - b[key]).cwiseAbs().maxCoeff());
+      scale = std::max(scale, w.cwiseAbs().maxCoeff());
+    }
+    EXPECT_LT(err, 1e-9 * scale) << name;
+    EXPECT_LT(sc.force_field->neighbour_pairs(), 1u << 30);
+    // Back to no regions: identical to the start.
+    sc.force_field->clear_rigid_regions();
+    std::vector<Vec6> f_back;
+    EXPECT_NEAR(sc.compute(d, f_back), E_full, 1e-9 * std::abs(E_full));
+  }
+}
