@@ -1,0 +1,196 @@
+// haptree::bus::Bus — one lcm::LCM instance, typed subscriptions that decode raw bytes themselves
+// (never throw out of a handler, count what they reject), plain-words set-up errors, and a handler thread.
+// STYLE.md §7.6. LCM 1.3.1 offers member-function subscriptions only; Subscription<T> is that member.
+#pragma once
+
+#include <lcm/lcm-cpp.hpp>
+
+#include <atomic>
+#include <cstdint>
+#include <cstring>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "haptree/bus/latest_value.hpp"
+#include "haptree/bus/wire.hpp"
+
+namespace haptree::bus {
+
+// Set-up failure of the bus, with the fix in the message (e.g. the missing multicast route).
+class BusError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// Looks at an LCM URL and this machine's network set-up; returns "" if nothing is wrong, otherwise one
+// paragraph in plain words that ends with the command that fixes it. Only udpm:// is examined.
+std::string diagnose_lcm_url(const std::string& url);
+
+// Counters of one subscription. Written by the handling thread, readable from any thread.
+struct ChannelStats {
+  std::atomic<int64_t> received{0};        // messages that reached the handler
+  std::atomic<int64_t> accepted{0};        // decoded, right schema, handed to the callback
+  std::atomic<int64_t> decode_errors{0};   // fingerprint/size mismatch, implausible counts, random bytes
+  std::atomic<int64_t> schema_rejects{0};  // decoded but schema_version != this build's
+  std::atomic<int64_t> handler_errors{0};  // the callback threw (caught here)
+  std::atomic<int32_t> last_peer_schema{-1};  // schema_version read at byte 8 of the last rejected message
+  int64_t rejected() const noexcept { return decode_errors.load() + schema_rejects.load(); }
+};
+
+class SubscriptionBase {
+ public:
+  explicit SubscriptionBase(std::string channel) : channel_(std::move(channel)) {}
+  virtual ~SubscriptionBase() = default;
+  const std::string& channel() const noexcept { return channel_; }
+  const ChannelStats& stats() const noexcept { return stats_; }
+  lcm::Subscription* lcm_subscription = nullptr;
+
+ protected:
+  std::string channel_;
+  ChannelStats stats_;
+};
+
+// Typed subscription: decodes into one reused T (no allocation once T reached its largest size), checks
+// schema_version, calls the callback with the message. on_raw never throws.
+template <class T>
+class Subscription final : public SubscriptionBase {
+ public:
+  using Callback = std::function<void(const T& msg, const std::string& channel)>;
+  Subscription(std::string channel, Callback cb) : SubscriptionBase(std::move(channel)), cb_(std::move(cb)) {}
+
+  void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
+    stats_.received.fetch_add(1, std::memory_order_relaxed);
+    const DecodeResult r = decode_checked(rbuf->data, rbuf->data_size, msg_);
+    if (r != DecodeResult::kOk) {
+      (r == DecodeResult::kSchemaMismatch ? stats_.schema_rejects : stats_.decode_errors)
+          .fetch_add(1, std::memory_order_relaxed);
+      int32_t peer = -1;
+      if (peek_schema_version(rbuf->data, rbuf->data_size, &peer)) stats_.last_peer_schema.store(peer);
+      return;
+    }
+    stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+    try {
+      cb_(msg_, channel);
+    } catch (...) {
+      stats_.handler_errors.fetch_add(1, std::memory_order_relaxed);
+    }
+  }
+
+ private:
+  Callback cb_;
+  T msg_{};
+};
+
+// Raw subscription: bytes as they came (for mirrors, loggers, fuzz counters).
+class RawSubscription final : public SubscriptionBase {
+ public:
+  using Callback = std::function<void(const void* data, uint32_t size, const std::string& channel)>;
+  RawSubscription(std::string channel, Callback cb) : SubscriptionBase(std::move(channel)), cb_(std::move(cb)) {}
+  void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
+    stats_.received.fetch_add(1, std::memory_order_relaxed);
+    stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+    try {
+      cb_(rbuf->data, rbuf->data_size, channel);
+    } catch (...) {
+      stats_.handler_errors.fetch_add(1, std::memory_order_relaxed);
+    }
+  }
+
+ private:
+  Callback cb_;
+};
+
+class Bus {
+ public:
+  // url: any LCM URL. "memq://" keeps everything in this process (all components must share this Bus);
+  // "udpm://239.255.76.67:7667?ttl=0" between processes/hosts; "" = $LCM_DEFAULT_URL or LCM's default.
+  // Throws BusError in plain words (with the fix) when the transport cannot be set up.
+  explicit Bus(const std::string& url = "memq://");
+  ~Bus();
+  Bus(const Bus&) = delete;
+  Bus& operator=(const Bus&) = delete;
+
+  const std::string& url() const noexcept { return url_; }
+  lcm::LCM& lcm() noexcept { return *lcm_; }
+
+  // Encodes msg into a per-thread buffer (no allocation once grown) and publishes it. Returns 0 on
+  // success, -1 on failure (counted in publish_errors()). Never throws.
+  template <class T>
+  int publish(const std::string& channel, const T& msg) noexcept {
+    thread_local std::vector<uint8_t> buf;
+    const int n = msg.getEncodedSize();
+    if (n < 0) return fail_publish();
+    try {
+      if (buf.size() < static_cast<size_t>(n)) buf.resize(static_cast<size_t>(n));
+    } catch (...) {
+      return fail_publish();
+    }
+    if (msg.encode(buf.data(), 0, n) != n) return fail_publish();
+    return publish_raw(channel, buf.data(), n);
+  }
+  int publish_raw(const std::string& channel, const void* data, int size) noexcept;
+
+  // Typed subscription. The callback runs on the thread that handles the bus (see HandlerThread);
+  // keep it short (copy into a LatestValue). The Subscription lives as long as the Bus.
+  template <class T>
+  Subscription<T>& subscribe(const std::string& channel, typename Subscription<T>::Callback cb) {
+    auto sub = std::make_unique<Subscription<T>>(channel, std::move(cb));
+    auto* raw = sub.get();
+    raw->lcm_subscription = lcm_->subscribe(channel, &Subscription<T>::on_raw, raw);
+    add(std::move(sub));
+    return *raw;
+  }
+  // Decoded messages go straight into a mailbox (the handler thread is its only writer).
+  template <class T>
+  Subscription<T>& subscribe_latest(const std::string& channel, LatestValue<T>& box) {
+    return subscribe<T>(channel, [&box](const T& m, const std::string&) { box.write(m); });
+  }
+  RawSubscription& subscribe_raw(const std::string& channel, RawSubscription::Callback cb);
+
+  // Handles at most one message, waiting up to timeout_ms. >0 handled, 0 timeout, <0 error.
+  int handle_timeout(int timeout_ms) noexcept;
+
+  // Sum over all subscriptions of rejected() (decode errors + schema mismatches).
+  int64_t rejected_total() const;
+  int64_t publish_errors() const noexcept { return publish_errors_.load(); }
+  // Snapshot of every subscription's channel and counters (pointers live as long as the Bus).
+  std::vector<const SubscriptionBase*> subscriptions() const;
+
+ private:
+  void add(std::unique_ptr<SubscriptionBase> sub);
+  int fail_publish() noexcept {
+    publish_errors_.fetch_add(1, std::memory_order_relaxed);
+    return -1;
+  }
+  std::string url_;
+  std::unique_ptr<lcm::LCM> lcm_;
+  mutable std::mutex subs_mutex_;  // guards subs_ (subscribe/list only; never taken in a handler)
+  std::vector<std::unique_ptr<SubscriptionBase>> subs_;
+  std::atomic<int64_t> publish_errors_{0};
+};
+
+// Runs bus.handle_timeout(timeout_ms) in a loop on its own thread until stop() or destruction.
+class HandlerThread {
+ public:
+  explicit HandlerThread(Bus& bus, int timeout_ms = 20);
+  ~HandlerThread();
+  HandlerThread(const HandlerThread&) = delete;
+  HandlerThread& operator=(const HandlerThread&) = delete;
+  void stop();  // idempotent; joins
+  int64_t handled() const noexcept { return handled_.load(); }
+  int64_t errors() const noexcept { return errors_.load(); }  // handle() returned <0
+
+ private:
+  Bus& bus_;
+  int timeout_ms_;
+  std::atomic<bool> stop_{false};
+  std::atomic<int64_t> handled_{0}, errors_{0};
+  std::thread thread_;
+};
+
+}  // namespace haptree::bus

@@ -1,0 +1,121 @@
+#include "haptree/device/registry.hpp"
+
+#include <mutex>
+#include <sstream>
+#include <stdexcept>
+
+#include "haptree/device/replay.hpp"
+#include "haptree/device/simulated.hpp"
+
+namespace haptree::device {
+
+double option_double(const DeviceConfig& c, const std::string& key, double fallback) {
+  auto it = c.options.find(key);
+  if (it == c.options.end()) return fallback;
+  try {
+    size_t used = 0;
+    const double v = std::stod(it->second, &used);
+    if (used != it->second.size()) throw std::invalid_argument("trailing characters");
+    return v;
+  } catch (const std::exception&) {
+    throw std::invalid_argument("device option " + key + "='" + it->second + "' is not a number");
+  }
+}
+
+Vec3 option_vec3(const DeviceConfig& c, const std::string& key, const Vec3& fallback) {
+  auto it = c.options.find(key);
+  if (it == c.options.end()) return fallback;
+  std::istringstream in(it->second);
+  Vec3 v;
+  char sep1 = 0, sep2 = 0;
+  if (!(in >> v.x() >> sep1 >> v.y() >> sep2 >> v.z()) || sep1 != ',' || sep2 != ',' || !(in >> std::ws).eof())
+    throw std::invalid_argument("device option " + key + "='" + it->second + "' is not 'x,y,z'");
+  return v;
+}
+
+std::string option_string(const DeviceConfig& c, const std::string& key, const std::string& fallback) {
+  auto it = c.options.find(key);
+  return it == c.options.end() ? fallback : it->second;
+}
+
+namespace {
+
+GrabPullRelease script_options(const DeviceConfig& c) {
+  GrabPullRelease p;
+  p.start_m = option_vec3(c, "start_m", p.start_m);
+  p.grab_m = option_vec3(c, "grab_m", p.grab_m);
+  p.pull_direction = option_vec3(c, "pull_direction", p.pull_direction);
+  p.pull_distance_m = option_double(c, "pull_distance_m", p.pull_distance_m);
+  p.approach_s = option_double(c, "approach_s", p.approach_s);
+  p.settle_s = option_double(c, "settle_s", p.settle_s);
+  p.pull_s = option_double(c, "pull_s", p.pull_s);
+  p.hold_s = option_double(c, "hold_s", p.hold_s);
+  p.rest_s = option_double(c, "rest_s", p.rest_s);
+  return p;
+}
+
+struct Registry {
+  std::mutex mutex;
+  std::map<std::string, DeviceFactory> factories;
+  Registry() {
+    factories["scripted"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
+      return std::make_unique<ScriptedDevice>(c.spec, make_grab_pull_release(script_options(c)));
+    };
+    factories["virtual_hand"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
+      VirtualHandParams p;
+      p.mass_kg = option_double(c, "mass_kg", p.mass_kg);
+      p.stiffness_n_per_m = option_double(c, "stiffness_n_per_m", p.stiffness_n_per_m);
+      p.damping_n_s_per_m = option_double(c, "damping_n_s_per_m", p.damping_n_s_per_m);
+      p.max_substep_s = option_double(c, "max_substep_s", p.max_substep_s);
+      return std::make_unique<VirtualHand>(c.spec, p, make_grab_pull_release(script_options(c)));
+    };
+    factories["replay"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
+      const std::string log = option_string(c, "log", "");
+      const std::string channel = option_string(c, "channel", "");
+      if (log.empty() || channel.empty())
+        throw std::invalid_argument("device 'replay' needs options log=<file.lcm> and channel=<name>");
+      return std::make_unique<ReplayDevice>(c.spec, log, channel, option_double(c, "loop", 0) != 0);
+    };
+  }
+};
+
+Registry& registry() {
+  static Registry r;  // built on first use: no static-initialisation order or dropped-object issues
+  return r;
+}
+
+}  // namespace
+
+void register_device(const std::string& name, DeviceFactory factory) {
+  auto& r = registry();
+  std::lock_guard<std::mutex> lock(r.mutex);
+  if (!factory) throw std::invalid_argument("register_device('" + name + "'): empty factory");
+  if (!r.factories.emplace(name, std::move(factory)).second)
+    throw std::invalid_argument("register_device: a device named '" + name + "' is already registered");
+}
+
+std::vector<std::string> device_names() {
+  auto& r = registry();
+  std::lock_guard<std::mutex> lock(r.mutex);
+  std::vector<std::string> names;
+  for (const auto& kv : r.factories) names.push_back(kv.first);
+  return names;
+}
+
+std::unique_ptr<Device> make_device(const std::string& name, const DeviceConfig& config) {
+  DeviceFactory f;
+  {
+    auto& r = registry();
+    std::lock_guard<std::mutex> lock(r.mutex);
+    auto it = r.factories.find(name);
+    if (it == r.factories.end()) {
+      std::string known;
+      for (const auto& kv : r.factories) known += (known.empty() ? "" : ", ") + kv.first;
+      throw std::invalid_argument("unknown device '" + name + "'; known devices: " + known);
+    }
+    f = it->second;
+  }
+  return f(config);
+}
+
+}  // namespace haptree::device

@@ -1,0 +1,40 @@
+// Devices by name, so real SDKs plug in without the processes knowing them:
+//   haptree::device::register_device("phantom", [](const DeviceConfig& c) { return std::make_unique<...>(c); });
+// Built in: "scripted", "virtual_hand", "replay" (options below).
+#pragma once
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "haptree/device/device.hpp"
+
+namespace haptree::device {
+
+struct DeviceConfig {
+  DeviceSpec spec;
+  // Free-form options as strings (from a command line or a config file). Built-ins read:
+  //  scripted / virtual_hand (the script or target, GrabPullRelease): start_m, grab_m, pull_direction
+  //    ("x,y,z"), pull_distance_m, approach_s, settle_s, pull_s, hold_s, rest_s
+  //  virtual_hand: mass_kg, stiffness_n_per_m, damping_n_s_per_m, max_substep_s
+  //  replay: log (path, required), channel (required), loop (0/1)
+  std::map<std::string, std::string> options;
+};
+
+using DeviceFactory = std::function<std::unique_ptr<Device>(const DeviceConfig&)>;
+
+// Throws std::invalid_argument if the name is taken.
+void register_device(const std::string& name, DeviceFactory factory);
+// Throws std::invalid_argument listing the known names when `name` is unknown, or naming the option
+// and its value when an option is malformed.
+std::unique_ptr<Device> make_device(const std::string& name, const DeviceConfig& config);
+std::vector<std::string> device_names();
+
+// Option readers used by the built-ins (and handy for plug-ins); throw std::invalid_argument with key/value.
+double option_double(const DeviceConfig& c, const std::string& key, double fallback);
+Vec3 option_vec3(const DeviceConfig& c, const std::string& key, const Vec3& fallback);
+std::string option_string(const DeviceConfig& c, const std::string& key, const std::string& fallback);
+
+}  // namespace haptree::device

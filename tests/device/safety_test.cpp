@@ -1,0 +1,155 @@
+// Tests for haptree/safety.cpp.
+#include "haptree/safety.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+#include <random>
+
+namespace haptree {
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+TEST(Safety, ClampNorm) {
+  bool clamped = false;
+  const Vec3 f(3, 4, 12);  // norm 13
+  const Vec3 c = clamp_norm(f, 6.5, &clamped);
+  EXPECT_TRUE(clamped);
+  EXPECT_NEAR(c.norm(), 6.5, 1e-15);
+  EXPECT_NEAR((c - 0.5 * f).norm(), 0, 1e-15);  // same direction
+  EXPECT_EQ(clamp_norm(f, 13.5, &clamped), f);
+  EXPECT_FALSE(clamped);
+  EXPECT_EQ(clamp_norm(Vec3(kNaN, 0, 0), 10, &clamped), Vec3::Zero());
+  EXPECT_TRUE(clamped);
+  EXPECT_EQ(clamp_norm(Vec3(kInf, 0, 0), 10), Vec3::Zero());
+  EXPECT_EQ(clamp_norm(f, kNaN), Vec3::Zero());
+  EXPECT_EQ(clamp_norm(f, -1), Vec3::Zero());
+}
+
+TEST(Safety, FiniteOrZero) {
+  bool replaced = true;
+  EXPECT_EQ(finite_or_zero(Vec3(1, 2, 3), &replaced), Vec3(1, 2, 3));
+  EXPECT_FALSE(replaced);
+  EXPECT_EQ(finite_or_zero(Vec3(1, -kInf, 3), &replaced), Vec3::Zero());
+  EXPECT_TRUE(replaced);
+  EXPECT_TRUE(all_finite(Vec6::Ones()));
+  EXPECT_FALSE(all_finite(Vec3(0, kNaN, 0)));
+}
+
+// Simulated time: 10 kHz loop, inputs fresh until t_stop, stale until t_resume, fresh again.
+TEST(Safety, WatchdogRampsDownWithinItsBudgetAndRecovers) {
+  WatchdogParams p;
+  p.stale_after_s = 0.004;
+  p.ramp_down_s = 0.005;
+  p.ramp_up_s = 0.050;
+  Watchdog wd(p);
+  const double dt = 1e-4, t_stop = 0.2, t_resume = 0.4;
+  double last_input = 0, t_full = -1, t_zero = -1, t_back = -1, min_gain_fresh = 1;
+  double prev_gain = 0, max_step_down = 0, max_step_up = 0;
+  for (int k = 0; k <= 6000; ++k) {
+    const double t = k * dt;
+    const bool inputs_arrive = t < t_stop || t >= t_resume;
+    if (inputs_arrive) last_input = t;
+    const double g = wd.update(t, t - last_input);
+    ASSERT_GE(g, 0.0);
+    ASSERT_LE(g, 1.0);
+    max_step_down = std::max(max_step_down, prev_gain - g);
+    max_step_up = std::max(max_step_up, g - prev_gain);
+    prev_gain = g;
+    if (t_full < 0 && g == 1.0) t_full = t;
+    if (t >= t_stop && t < t_stop + p.stale_after_s) min_gain_fresh = std::min(min_gain_fresh, g);
+    if (t >= t_stop && t_zero < 0 && g == 0.0) t_zero = t;
+    if (t >= t_resume && t_back < 0 && g == 1.0) t_back = t;
+  }
+  const double tol = 2 * dt;
+  EXPECT_NEAR(t_full, p.ramp_up_s, tol);                       // initial ramp-in
+  EXPECT_EQ(min_gain_fresh, 1.0);                               // not stale yet: full force
+  EXPECT_LE(t_zero, t_stop + p.stale_after_s + p.ramp_down_s + tol);  // the budget
+  EXPECT_GE(t_zero, t_stop + p.stale_after_s + p.ramp_down_s - tol);  // and linear, not a jump
+  EXPECT_NEAR(t_back, t_resume + p.ramp_up_s, tol);
+  EXPECT_NEAR(max_step_down, dt / p.ramp_down_s, 1e-12);       // linear ramps
+  EXPECT_NEAR(max_step_up, dt / p.ramp_up_s, 1e-12);
+  EXPECT_EQ(wd.trips(), 1);
+  EXPECT_FALSE(wd.stale());
+}
+
+TEST(Safety, WatchdogTreatsNonFiniteAgeAsStale) {
+  Watchdog wd;
+  wd.update(0, 0);
+  wd.update(1, 0);
+  EXPECT_EQ(wd.gain(), 1.0);
+  wd.update(1.0 + 1e-3, kNaN);
+  EXPECT_TRUE(wd.stale());
+  wd.update(2, -1);
+  EXPECT_EQ(wd.gain(), 0.0);
+}
+
+TEST(Safety, ForceSafetyNeverPassesNonFiniteOrOverLimit) {
+  ForceLimits lim;
+  lim.max_force = 2.5;
+  lim.max_torque = 0.1;
+  WatchdogParams wp;
+  wp.ramp_up_s = 0;  // full force as soon as fresh
+  ForceSafety safety(lim, wp);
+  std::mt19937 g(11);
+  std::uniform_real_distribution<double> u(-100, 100);
+  const double specials[] = {kNaN, kInf, -kInf, 1e308, -1e308, 0};
+  int nonfinite_in = 0;
+  for (int k = 0; k < 5000; ++k) {
+    Vec3 f(u(g), u(g), u(g)), tau(u(g), u(g), u(g));
+    if (k % 7 == 0) f[g() % 3] = specials[g() % 6];
+    if (k % 11 == 0) tau[g() % 3] = specials[g() % 6];
+    nonfinite_in += !(f.allFinite() && tau.allFinite());
+    const GuardedForce out = safety.apply(k * 1e-4, 0.0, f, tau);
+    ASSERT_TRUE(out.force.allFinite());
+    ASSERT_TRUE(out.torque.allFinite());
+    ASSERT_LE(out.force.norm(), lim.max_force * (1 + 1e-15));
+    ASSERT_LE(out.torque.norm(), lim.max_torque * (1 + 1e-15));
+    if (!(f.allFinite() && tau.allFinite())) {
+      ASSERT_TRUE(out.flags & kSafetyNonFinite);
+    }
+  }
+  EXPECT_EQ(safety.nonfinite_events(), nonfinite_in);
+  EXPECT_GT(safety.clamp_events(), 0);
+  // Within limits and fresh: passes unchanged.
+  const GuardedForce ok = safety.apply(1.0, 0.0, Vec3(0.1, 0.2, 0.3), Vec3::Zero());
+  EXPECT_EQ(ok.force, Vec3(0.1, 0.2, 0.3));
+  EXPECT_EQ(ok.flags, 0);
+  // Stale: flagged, and ramping.
+  const GuardedForce st = safety.apply(1.001, 1.0, Vec3(0.1, 0.2, 0.3), Vec3::Zero());
+  EXPECT_TRUE(st.flags & kSafetyStale);
+  EXPECT_TRUE(st.flags & kSafetyWatchdog);
+  EXPECT_LT(st.force.norm(), Vec3(0.1, 0.2, 0.3).norm());
+}
+
+// A port driven sinusoidally through a spring stores and returns energy (E back to ~0 over a period);
+// through a damper it only absorbs (passive); through a negative damper it produces energy (active).
+TEST(Safety, PassivityObserver) {
+  const double w = 2 * M_PI, dt = 1e-5, k = 50, b = 3;
+  PassivityObserver spring, damper, active;
+  for (long i = 0; i < std::lround(1.0 / dt); ++i) {
+    const double t = (i + 0.5) * dt;  // midpoint rule
+    const Vec3 x(std::sin(w * t), 0, 0), v(w * std::cos(w * t), 0, 0);
+    spring.add(k * x, v, dt);   // force on the element = k x: power k x v, E = k x²/2
+    damper.add(b * v, v, dt);
+    active.add(-b * v, v, dt);
+  }
+  EXPECT_NEAR(spring.energy(), 0.0, 1e-6);
+  EXPECT_NEAR(spring.energy_in(), 2 * k / 2, 1e-3);  // two compressions of k*1²/2 per period
+  EXPECT_NEAR(damper.energy(), b * w * w / 2, 1e-6);  // ∫ b v² over one period = b w² / 2
+  EXPECT_TRUE(damper.passive());
+  EXPECT_FALSE(active.passive());
+  EXPECT_NEAR(active.energy(), -b * w * w / 2, 1e-6);
+  EXPECT_LT(active.min_energy(), 0);
+  const Vec3 v(1, 0, 0);
+  EXPECT_NEAR(active.suggested_damping(v, 1e-3), b * w * w / 2 / 1e-3, 1e-3);
+  EXPECT_EQ(damper.suggested_damping(v, 1e-3), 0.0);
+  active.add(Vec3(kNaN, 0, 0), v, dt);
+  EXPECT_EQ(active.ignored(), 1);
+}
+
+}  // namespace
+}  // namespace haptree
