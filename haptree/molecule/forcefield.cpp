@@ -267,12 +267,7 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
 
 double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
   if (&x != &x_) x_ = x;   // same size: no allocation
-  if (list_valid_) {
-    const double lim2 = 0.25 * o_.skin * o_.skin;
-    for (int a = 0; a < n_; ++a)
-      if ((x[a] - x_ref_[a]).squaredNorm() > lim2) { list_valid_ = false; break; }
-  }
-  if (!list_valid_) build_list(x);
+  if (!list_covers(x)) build_list(x);
   if (static_cast<int>(F.size()) != n_) F.resize(n_);
   for (auto& f : F) f.setZero();
   EnergyTerms e;
@@ -348,8 +343,10 @@ double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F
 void Evaluator::set_rigid_regions(const std::vector<int>& body_region) {
   // Full list (keys = bodies) at the last positions, so every pair that becomes region-internal is
   // seen, including those skipped under the previous regions.
-  key_ = body_;
-  build_list(x_);
+  if (regions_active_ || !list_covers(x_)) {
+    key_ = body_;
+    build_list(x_);
+  }
   const int nb = static_cast<int>(body_region.size());
   for (int a = 0; a < n_; ++a) {
     const int b = body_[a];
@@ -388,9 +385,26 @@ void Evaluator::set_rigid_regions(const std::vector<int>& body_region) {
   e_region_ = e;
   key_.swap(new_key_);
   build_list(x_);
+  regions_active_ = true;
 }
 
-void Evaluator::clear_rigid_regions() { set_rigid_regions({}); }
+void Evaluator::clear_rigid_regions() {
+  if (!regions_active_) return;
+  key_ = body_;
+  p14_act_ = p14_;   // within capacity: no allocation
+  tors_act_ = tors_;
+  e_region_ = 0;
+  build_list(x_);
+  regions_active_ = false;
+}
+
+bool Evaluator::list_covers(const std::vector<Vec3>& x) const {
+  if (!list_valid_) return false;
+  const double lim2 = 0.25 * o_.skin * o_.skin;
+  for (int a = 0; a < n_; ++a)
+    if ((x[a] - x_ref_[a]).squaredNorm() > lim2) return false;
+  return true;
+}
 
 double Evaluator::compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext) {
   for (int a = 0; a < n_; ++a) x_[a] = data.r[body_[a]] + data.R[body_[a]] * local_[a];

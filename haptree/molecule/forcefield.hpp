@@ -68,6 +68,8 @@ class Evaluator {
 
  private:
   void build_list(const std::vector<Vec3>& x);
+  bool list_covers(const std::vector<Vec3>& x) const;
+  bool regions_active_ = false;
   NonbondedOptions o_;
   int n_;
   std::vector<int> body_;
