@@ -144,6 +144,25 @@ void joint_subspaces(const Model& m, const Data& d, int k, JointMat& S, JointMat
   }
 }
 
+namespace {
+
+// M(d) A for a 6×6 A: rows [A_top; A_bot − [d]× A_top] (3×3 block work instead of 6×6 products).
+inline Mat6 shift_rows(const Vec3& dv, const Mat6& A) {
+  Mat6 B = A;
+  const Mat3 D = skew(dv);
+  B.bottomRows<3>() -= D * A.topRows<3>();
+  return B;
+}
+// A M(d)ᵀ: columns [A_left + A_right·[d]×ᵀ … ] — M(d)ᵀ = [[1, [d]×],[0, 1]].
+inline Mat6 shift_cols(const Mat6& A, const Vec3& dv) {
+  Mat6 B = A;
+  const Mat3 D = skew(dv);
+  B.leftCols<3>() -= A.rightCols<3>() * D;
+  return B;
+}
+
+}  // namespace
+
 void dca_leaf(const Model& m, Data& d, int node) noexcept {
   const auto& t = m.tree;
   const int k = t.body[node];
@@ -159,17 +178,57 @@ void dca_leaf(const Model& m, Data& d, int node) noexcept {
   const Vec6 a0 = d.Iinv[k] * d.p_bias[k];
   for (int x = 0; x < h; ++x) {
     const int jx = t.handle(node, x);
-    const Mat6 Mx = motion_shift_matrix(jx == k ? Vec3::Zero() : d.d[jx]);
-    const Mat6 MxI = Mx * d.Iinv[k];
+    const bool own_x = jx == k;
+    const Mat6 MxI = own_x ? d.Iinv[k] : shift_rows(d.d[jx], d.Iinv[k]);
     for (int y = x; y < h; ++y) {
       const int jy = t.handle(node, y);
-      const Mat6 blk = jy == k ? MxI : Mat6(MxI * motion_shift_matrix(d.d[jy]).transpose());
+      const Mat6 blk = jy == k ? MxI : shift_cols(MxI, d.d[jy]);
       d.Phi(node, h, x, y) = blk;
       if (y != x) d.Phi(node, h, y, x) = blk.transpose();
     }
-    d.b(node, x) = Mx * a0;
+    d.b(node, x) = own_x ? a0 : shift_motion(a0, d.d[jx]);
   }
 }
+
+namespace {
+
+// W = T (Tᵀ Φ̂ T)^{-1} Tᵀ = Xᵀ X with X = L^{-1} Tᵀ, L the Cholesky factor of the nc × nc joint
+// system (hand-rolled for fixed nc: Eigen's generic triangular solve is not inlined at this size).
+// Returns false when a pivot is not positive relative to the trace (a modelling error, §14.4).
+template <int NC>
+bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
+  const Eigen::Matrix<double, 6, NC> T = Tdyn;
+  const Eigen::Matrix<double, NC, NC> A = T.transpose() * Phat * T;
+  const double tol = 1e-13 * A.trace();
+  bool ok = true;
+  double L[NC][NC] = {};
+  for (int j = 0; j < NC; ++j) {
+    double s = A(j, j);
+    for (int k = 0; k < j; ++k) s -= L[j][k] * L[j][k];
+    if (!(s > tol)) {
+      ok = false;
+      s = tol > 0 ? tol : 1e-300;
+    }
+    L[j][j] = std::sqrt(s);
+    const double inv = 1.0 / L[j][j];
+    for (int i = j + 1; i < NC; ++i) {
+      double v = A(i, j);
+      for (int k = 0; k < j; ++k) v -= L[i][k] * L[j][k];
+      L[i][j] = v * inv;
+    }
+  }
+  Eigen::Matrix<double, NC, 6> X;
+  for (int c = 0; c < 6; ++c)
+    for (int i = 0; i < NC; ++i) {
+      double v = T(c, i);
+      for (int k = 0; k < i; ++k) v -= L[i][k] * X(k, c);
+      X(i, c) = v / L[i][i];
+    }
+  W.noalias() = X.transpose() * X;
+  return ok;
+}
+
+}  // namespace
 
 void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
   const auto& t = m.tree;
@@ -182,27 +241,17 @@ void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau)
   joint_subspaces(m, d, J, S, T, D);
   Mat6& W = d.W[node];
   const int nc = static_cast<int>(T.cols());
-  if (nc == 0) {
-    W.setZero();
-  } else {
-    using Small = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
-    const Small A = T.transpose() * Phat * T;
-    Eigen::LLT<Small> llt(A);
-    const double tr = A.trace();
-    bool ok = llt.info() == Eigen::Success;
-    if (ok) {
-      const auto& L = llt.matrixLLT();
-      for (int i = 0; i < nc; ++i)
-        if (!(L(i, i) * L(i, i) > 1e-13 * tr)) ok = false;
-    }
-    if (!ok) {
-      ++d.diag.singular_pivots;
-      d.diag.last_bad_node = node;
-    }
-    const Small TtT = T.transpose();
-    const Eigen::Matrix<double, Eigen::Dynamic, 6, 0, 6, 6> X = llt.solve(TtT);
-    W.noalias() = T * X;
-    W = 0.5 * (W + W.transpose());
+  bool ok = true;
+  switch (nc) {
+    case 0: W.setZero(); break;
+    case 3: ok = constraint_inverse<3>(Phat, T, W); break;
+    case 5: ok = constraint_inverse<5>(Phat, T, W); break;
+    case 6: ok = constraint_inverse<6>(Phat, T, W); break;
+    default: W.setZero(); ok = false;   // no joint type has 1, 2 or 4 constraints
+  }
+  if (!ok) {
+    ++d.diag.singular_pivots;
+    d.diag.last_bad_node = node;
   }
   const int nJ = static_cast<int>(S.cols());
   Vec6& taut = d.taut[node];

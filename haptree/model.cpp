@@ -3,6 +3,7 @@
 #include <cmath>
 #include <cstring>
 #include <sstream>
+#include <unordered_set>
 
 #include <Eigen/Eigenvalues>
 
@@ -174,10 +175,10 @@ std::shared_ptr<const Model> ModelBuilder::build(const BuildOptions& options) co
     m.inertia.push_back(b.inertia);
     if (k > 0) m.children[b.parent].push_back(k);
   }
+  std::unordered_set<std::string> names;
   for (int k = 1; k < m.nbodies; ++k)
-    for (int j = 1; j < k; ++j)
-      if (m.joint_name[j] == m.joint_name[k])
-        throw ModelError("duplicate joint name '" + m.joint_name[k] + "'");
+    if (!names.insert(m.joint_name[k]).second)
+      throw ModelError("duplicate joint name '" + m.joint_name[k] + "'");
   m.tree = build_assembly_tree(m.parent);
 
   Hasher h;
