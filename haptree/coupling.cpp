@@ -14,7 +14,8 @@ enum : int { kHLayout = 0, kHGrabs, kHNodes, kHLeaves, kHSlots, kHMaxH, kHExt, k
 enum : int { kId = 0, kUp, kP, kQ, kSlotJ, kSlotK, kH, kHP, kVal, kSlot, kKind, kBody };
 enum : int { kGBody = 0, kGLeaf, kGVal };
 constexpr int kLeafFixed = 45;       // Iinv 36 | f_ext 6 | r 3
-constexpr int kInternalFixed = 42;   // W 36 | β 6
+constexpr int kInternalFixed = 27;   // W 21 (upper triangle) | β 6
+constexpr int kBeta = 21;
 constexpr std::int32_t kLeafKind = static_cast<std::int32_t>(NodeKind::kLeaf);
 
 using CM6 = Eigen::Map<const Mat6>;
@@ -44,10 +45,24 @@ View make_view(const std::vector<std::int32_t>& ints, const double* values) {
   return v;
 }
 
+// W is symmetric: stored as its upper triangle, column by column (21 doubles).
+void pack_sym(const Mat6& W, double* p) {
+  for (int c = 0, i = 0; c < 6; ++c)
+    for (int r = 0; r <= c; ++r) p[i++] = W(r, c);
+}
+Mat6 unpack_sym(const double* p) {
+  Mat6 W;
+  for (int c = 0, i = 0; c < 6; ++c)
+    for (int r = 0; r <= c; ++r, ++i) W(r, c) = W(c, r) = p[i];
+  return W;
+}
+
 // Linear bottom-up pass for the user-force bias b_u over U (§11.4, §12): leaves from fu_leaf (at r_k),
 // internal nodes with Δβ = W (b_u^P_j − b_u^Q_k), b_u = 0 off U. Writes bu (per slot) and dbeta.
 // Returns the number of assembly-tree nodes whose coefficients were read (U plus the siblings).
-std::int64_t bottom_up(const View& v, const double* fu_leaf, double* bu, double* dbeta) noexcept {
+// Wfull (optional, 36 per node): W unpacked, kept for the top-down pass.
+std::int64_t bottom_up(const View& v, const double* fu_leaf, double* bu, double* dbeta,
+                       double* Wfull) noexcept {
   std::int64_t read = 0;
   for (int i = v.N - 1; i >= 0; --i) {
     const std::int32_t* r = v.node(i);
@@ -69,7 +84,9 @@ std::int64_t bottom_up(const View& v, const double* fu_leaf, double* bu, double*
     Vec6 diff = Vec6::Zero();
     if (bP) diff += CV6(bP + 6 * j);
     if (bQ) diff -= CV6(bQ + 6 * k);
-    const Vec6 db = CM6(val) * diff;
+    const Mat6 W = unpack_sym(val);
+    if (Wfull) M6{Wfull + 36 * i} = W;
+    const Vec6 db = W * diff;
     V6(dbeta + 6 * i) = db;
     const double* col = val + kInternalFixed;
     int c = 0;
@@ -92,6 +109,7 @@ std::int64_t bottom_up(const View& v, const double* fu_leaf, double* bu, double*
 }
 
 bool finite6(const Vec6& x) { return x.allFinite(); }
+
 
 [[noreturn]] void bad_input(const std::string& what) {
   throw std::invalid_argument(std::string(__FILE__) + ": make_coupling_snapshot: " + what);
@@ -242,8 +260,8 @@ void make_coupling_snapshot(const Model& model, const Data& data, const std::vec
         V3(v + kLeafFixed + 3 * x) = jx == k ? Vec3::Zero() : Vec3(data.d[jx]);
       }
     } else {
-      M6{v} = data.W[id];
-      V6(v + 36) = data.beta[id];
+      pack_sym(data.W[id], v);
+      V6(v + kBeta) = data.beta[id];
       const int P = t.P[id], Q = t.Q[id], j = r[kSlotJ], kk = r[kSlotK], hP = r[kHP];
       const int hQ = t.handle_num[Q];
       double* col = v + kInternalFixed;
@@ -276,10 +294,10 @@ void make_coupling_snapshot(const Model& model, const Data& data, const std::vec
       V6(vp + rec[kNodeInts * gr[kGLeaf] + kVal] + 36) -= f_rk;
     }
     const View view = make_view(I, vp);
-    bottom_up(view, fu, bu, dbeta);
+    bottom_up(view, fu, bu, dbeta, nullptr);
     for (int i = 0; i < N; ++i) {
       const std::int32_t* r = rec + kNodeInts * i;
-      if (r[kBody] < 0) V6(vp + r[kVal] + 36) -= CV6(dbeta + 6 * i);
+      if (r[kBody] < 0) V6(vp + r[kVal] + kBeta) -= CV6(dbeta + 6 * i);
     }
     V.resize(static_cast<std::size_t>(val));
   }
@@ -338,7 +356,8 @@ CouplingWorkspace::CouplingWorkspace(int max_nodes, int max_slots)
       f(6 * static_cast<std::size_t>(max_slots)),
       dbeta(6 * static_cast<std::size_t>(max_nodes)),
       fu_leaf(6 * static_cast<std::size_t>(max_nodes)),
-      feed_leaf(6 * static_cast<std::size_t>(max_nodes)) {}
+      feed_leaf(6 * static_cast<std::size_t>(max_nodes)),
+      W(36 * static_cast<std::size_t>(max_nodes)) {}
 
 bool CouplingWorkspace::fits(const CouplingSnapshot& s) const {
   if (s.ints.size() < static_cast<std::size_t>(kHeaderInts)) return false;
@@ -347,7 +366,8 @@ bool CouplingWorkspace::fits(const CouplingSnapshot& s) const {
          f.size() >= 6 * static_cast<std::size_t>(slots) &&
          dbeta.size() >= 6 * static_cast<std::size_t>(N) &&
          fu_leaf.size() >= 6 * static_cast<std::size_t>(N) &&
-         feed_leaf.size() >= 6 * static_cast<std::size_t>(N);
+         feed_leaf.size() >= 6 * static_cast<std::size_t>(N) &&
+         W.size() >= 36 * static_cast<std::size_t>(N);
 }
 
 void CouplingWorkspace::reserve_for(const CouplingSnapshot& s) {
@@ -358,6 +378,7 @@ void CouplingWorkspace::reserve_for(const CouplingSnapshot& s) {
   if (dbeta.size() < 6 * static_cast<std::size_t>(N)) dbeta.resize(6 * N);
   if (fu_leaf.size() < 6 * static_cast<std::size_t>(N)) fu_leaf.resize(6 * N);
   if (feed_leaf.size() < 6 * static_cast<std::size_t>(N)) feed_leaf.resize(6 * N);
+  if (W.size() < 36 * static_cast<std::size_t>(N)) W.resize(36 * N);
 }
 
 CouplingStatus coupling_forces(const CouplingSnapshot& s, const Vec6* f_u, CouplingWorkspace& ws,
@@ -388,7 +409,7 @@ CouplingStatus coupling_forces(const CouplingSnapshot& s, const Vec6* f_u, Coupl
   // Bottom-up over U: b_u and Δβ.
   double* bu = ws.bu.data();
   double* dbeta = ws.dbeta.data();
-  ws.nodes_read = bottom_up(v, fu, bu, dbeta);
+  ws.nodes_read = bottom_up(v, fu, bu, dbeta, ws.W.data());
 
   // Top-down over U (ids ascending): handle forces with β = β_ext + Δβ; only children in U.
   double* f = ws.f.data();
@@ -406,7 +427,7 @@ CouplingStatus coupling_forces(const CouplingSnapshot& s, const Vec6* f_u, Coupl
     Vec6 s_diff = Vec6::Zero();   // s_P − s_Q
     for (int c = 0; c < hP - 1; ++c) s_diff.noalias() += CM6(col + 36 * c).transpose() * CV6(fC + 6 * c);
     for (int c = hP - 1; c < h; ++c) s_diff.noalias() -= CM6(col + 36 * c).transpose() * CV6(fC + 6 * c);
-    const Vec6 fc = CM6(val) * s_diff + CV6(val + 36) + CV6(dbeta + 6 * i);
+    const Vec6 fc = CM6(ws.W.data() + 36 * i) * s_diff + CV6(val + kBeta) + CV6(dbeta + 6 * i);
     if (P >= 0) {
       double* fP = f + 6 * v.node(P)[kSlot];
       int c = 0;

@@ -70,7 +70,8 @@ struct CouplingSnapshot {
 //   node record (local nodes are U in ascending assembly-tree id: 0 is the root, parents first):
 //     [tree node id, local parent (-1 root), local P (-1 if P ∉ U), local Q (-1 if Q ∉ U),
 //      slot_j, slot_k, h, h_P, value offset, slot offset (prefix Σ h), kind (NodeKind), body (leaves)]
-//   values: internal node: W (36, column-major) | β_ext (6) | h blocks of 36 (column-major 6×6):
+//   values: internal node: W (21: upper triangle, column by column) | β_ext (6) |
+//                          h blocks of 36 (column-major 6×6):
 //             block c = Φ^P_{i j} for C-slot c < h_P−1 (i = c-th handle of P', in P's order),
 //                       Φ^Q_{l k} for c ≥ h_P−1 (l = (c−h_P+1)-th handle of Q')
 //           leaf:          I^{-1} (36) | f_ext (6) | r_k (3) | h offsets (3 each: handle point − r_k)
@@ -121,6 +122,7 @@ struct CouplingWorkspace {
   std::vector<double> dbeta;       // 6 × n_nodes: Δβ per U node
   std::vector<double> fu_leaf;     // 6 × n_nodes (leaves only): Σ user forces at r_k
   std::vector<double> feed_leaf;   // 6 × n_nodes (leaves only): f_feed at r_k
+  std::vector<double> W;           // 36 × n_nodes: W unpacked by the bottom-up for the top-down
   // Instrumentation: assembly-tree nodes whose coefficients the last call read (= |E|: the nodes
   // of U plus every child of a U node that is not in U); 2·depth(L)+1 for a single grab.
   std::int64_t nodes_read = 0;
