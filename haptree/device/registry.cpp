@@ -94,6 +94,12 @@ void register_device(const std::string& name, DeviceFactory factory) {
     throw std::invalid_argument("register_device: a device named '" + name + "' is already registered");
 }
 
+bool unregister_device(const std::string& name) {
+  auto& r = registry();
+  std::lock_guard<std::mutex> lock(r.mutex);
+  return r.factories.erase(name) == 1;
+}
+
 std::vector<std::string> device_names() {
   auto& r = registry();
   std::lock_guard<std::mutex> lock(r.mutex);

@@ -27,6 +27,8 @@ using DeviceFactory = std::function<std::unique_ptr<Device>(const DeviceConfig&)
 
 // Throws std::invalid_argument if the name is taken.
 void register_device(const std::string& name, DeviceFactory factory);
+// Removes a registration (plug-in unloading, tests). False if the name was not registered.
+bool unregister_device(const std::string& name);
 // Throws std::invalid_argument listing the known names when `name` is unknown, or naming the option
 // and its value when an option is malformed.
 std::unique_ptr<Device> make_device(const std::string& name, const DeviceConfig& config);

@@ -231,6 +231,9 @@ TEST(Registry, BuiltInsPlugInsAndErrors) {
   auto plug = make_device("test_plugin", DeviceConfig{});
   ASSERT_TRUE(plug->read(0.0, r).ok());
   EXPECT_EQ(r.position_m, Vec3(1, 2, 3));
+  EXPECT_TRUE(unregister_device("test_plugin"));
+  EXPECT_FALSE(unregister_device("test_plugin"));
+  EXPECT_THROW(make_device("test_plugin", DeviceConfig{}), std::invalid_argument);
 }
 
 }  // namespace
