@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
+#include "haptree/bus/cli.hpp"
 
 namespace haptree::bus {
 namespace {
@@ -32,6 +33,23 @@ TEST(Channels, Names) {
   EXPECT_THROW(channel::device_state(-1), std::invalid_argument);
   EXPECT_THROW(channel::stats("coupler", std::string(60, 'X')), std::invalid_argument);
   EXPECT_THROW(channel::scene_state("/bad"), std::invalid_argument);
+}
+
+TEST(BusOptions, ParseAndDefaults) {
+  CLI::App app;
+  BusOptions o;
+  add_bus_options(app, o);
+  const char* argv[] = {"x", "--lcm-url", "memq://", "--shm", "--mirror-rate-hz", "50", "--channel-suffix", "_B"};
+  app.parse(8, const_cast<char**>(argv));
+  EXPECT_EQ(o.lcm_url, "memq://");
+  EXPECT_TRUE(o.shm);
+  EXPECT_EQ(o.mirror_rate_hz, 50.0);
+  EXPECT_EQ(channel::feedback(2, o.channel_suffix), "HAPTREE_FEEDBACK_2_B");
+  CLI::App bad;
+  BusOptions o2;
+  add_bus_options(bad, o2);
+  const char* argv2[] = {"x", "--mirror-rate-hz", "-3"};
+  EXPECT_THROW(bad.parse(3, const_cast<char**>(argv2)), CLI::ValidationError);
 }
 
 TEST(Bus, UnknownProviderSaysWhatIsValid) {

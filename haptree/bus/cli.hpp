@@ -1,0 +1,31 @@
+// Command-line options shared by the processes (STYLE.md §7.9). Header-only: the process links CLI11.
+//   BusOptions bus_opts; add_bus_options(app, bus_opts);
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <string>
+
+namespace haptree::bus {
+
+struct BusOptions {
+  std::string lcm_url = "udpm://239.255.76.67:7667?ttl=0";  // LCM's default; memq:// for one process
+  std::string channel_suffix;                              // appended to every channel name
+  bool shm = false;                                        // device <-> coupler link over shared memory
+  double mirror_rate_hz = 100.0;                           // shm -> LCM mirror rate (0 = no mirror)
+};
+
+inline void add_bus_options(CLI::App& app, BusOptions& o) {
+  app.add_option("--lcm-url", o.lcm_url, "LCM provider: udpm://... between processes/hosts, memq:// in-process")
+      ->envname("LCM_DEFAULT_URL")
+      ->capture_default_str();
+  app.add_option("--channel-suffix", o.channel_suffix,
+                 "appended to every channel name (several sessions on one bus); [A-Za-z0-9_]")
+      ->capture_default_str();
+  app.add_flag("--shm", o.shm, "carry device state and feedback over same-host shared memory");
+  app.add_option("--mirror-rate-hz", o.mirror_rate_hz,
+                 "rate at which shared-memory channels are republished on LCM for lcm-logger (0: off)")
+      ->check(CLI::Range(0.0, 10000.0))
+      ->capture_default_str();
+}
+
+}  // namespace haptree::bus
