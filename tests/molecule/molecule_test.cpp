@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 
 #include "haptree/dca.hpp"
+#include "haptree/molecule/builder.hpp"
 #include "haptree/molecule/scene.hpp"
 
 using namespace haptree;
@@ -543,4 +544,55 @@ TEST(MoleculeForceField, RigidRegionsKeepEnergyAndRegionWrenches) {
     std::vector<Vec6> f_back;
     EXPECT_NEAR(sc.compute(d, f_back), E_full, 1e-9 * std::abs(E_full));
   }
+}
+
+TEST(MoleculeBuilder, AlanineHelixMatchesTheShippedHelixAndTypes) {
+  const Structure b = build_alanine_helix(20);
+  ASSERT_EQ(b.atoms.size(), 212u);
+  const Structure ref = read_structure(mol_dir() + "ala20_helix_h.pdb");
+  // Heavy atoms: same NeRF recipe and origin as the shipped file (which has 0.001 Å rounding).
+  std::map<std::pair<int, std::string>, Vec3> want;
+  for (const auto& a : ref.atoms) want[{a.resid, a.name}] = a.pos;
+  double worst = 0;
+  int heavy = 0;
+  for (const auto& a : b.atoms) {
+    if (a.element == "H") continue;
+    ++heavy;
+    ASSERT_TRUE(want.count({a.resid, a.name})) << a.name << " " << a.resid;
+    worst = std::max(worst, (a.pos - want[{a.resid, a.name}]).norm());
+  }
+  EXPECT_EQ(heavy, 105);   // ACE 3 + 20 x 5 + NME 2
+  EXPECT_LT(worst, 1e-4);   // nm (PDB rounding is 5e-5 nm per coordinate)
+  const ff::ForceFieldParams p = ff::load_force_field(mol_dir() + "ff14sb.dat");
+  const Topology t = build_topology(b, p);   // every template atom present, no unknown names
+  const TorsionModel tm = build_torsion_model(b, t);
+  EXPECT_EQ(tm.model->nv, 40);
+  // Hydrogens at their bond lengths, φ/ψ as requested, no clash.
+  std::vector<Vec3> x = positions(b);
+  for (const auto& [i, j] : t.bonds) {
+    const double r = (x[i] - x[j]).norm();
+    EXPECT_GT(r, 0.095);
+    EXPECT_LT(r, 0.16);
+  }
+  auto dihedral = [](const Vec3& a, const Vec3& b1, const Vec3& c, const Vec3& d) {
+    const Vec3 u = b1 - a, v = c - b1, w = d - c;
+    return std::atan2(v.norm() * u.dot(v.cross(w)), u.cross(v).dot(v.cross(w))) * 180 / M_PI;
+  };
+  auto at = [&](int res, const std::string& n) {
+    for (const auto& a : b.atoms) if (a.resid == res && a.name == n) return a.pos;
+    return Vec3(Vec3::Constant(NAN));
+  };
+  EXPECT_NEAR(dihedral(at(4, "C"), at(5, "N"), at(5, "CA"), at(5, "C")), -57, 1e-9);
+  EXPECT_NEAR(dihedral(at(5, "N"), at(5, "CA"), at(5, "C"), at(6, "N")), -47, 1e-9);
+  for (size_t i = 0; i < x.size(); ++i)
+    for (size_t j = i + 1; j < x.size(); ++j) EXPECT_GT((x[i] - x[j]).norm(), 0.09);
+  // Other lengths and a PDB round trip.
+  const Structure b5 = build_alanine_helix(5, -60, 140);
+  const std::string out = tmp_file("ala5.pdb", "");
+  write_pdb(out, b5, positions(b5));
+  const Structure back = read_structure(out);
+  const Topology t5 = build_topology(back, p);
+  EXPECT_EQ(build_torsion_model(back, t5).model->nv, 10);
+  fs::remove(out);
+  EXPECT_THROW(build_alanine_helix(0), StructureError);
 }
