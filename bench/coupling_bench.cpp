@@ -134,7 +134,7 @@ int main(int argc, char** argv) {
     e = std::chrono::duration<double, std::micro>(t1 - t0).count();
   }
   std::printf("timer overhead (steady_clock pair): median %.3f µs\n\n", percentile(empty, 0.5));
-  std::printf("| scene | n bodies | DOF | tree depth | n_f | median µs | p99 µs | batch µs/call (median of 100-call batches) | nodes read (mean/max) | mean |U| | snapshot bytes (mean/max) |\n");
+  std::printf("| scene | n bodies | DOF | tree depth | n_f | median µs | p99 µs | batch µs/call (median of 100-call batches) | nodes read (mean/max) | mean size of U | snapshot bytes (mean/max) |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
   auto print = [](const Row& r) {
     std::printf("| %s | %d | %d | %d | %d | %.3f | %.3f | %.3f | %.1f / %ld | %.1f | %zu / %zu |\n",

@@ -10,6 +10,7 @@
 #include <random>
 #include <set>
 
+#include "haptree/adaptive.hpp"
 #include "haptree/coupling.hpp"
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
@@ -233,6 +234,102 @@ INSTANTIATE_TEST_SUITE_P(
       return info.param.scene + "_" + std::to_string(info.param.n) +
              (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "");
     });
+
+// Hybrid (adaptive) bodies: the active region contains the grabbed leaves' up-regions, siblings are
+// composite rigid frontier nodes. The snapshot reads whatever W/β/Φ the nodes hold; f_feed must
+// equal the hybrid pass with f_u applied and the oracle with the locked DOFs removed.
+TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
+  double worst_full = 0, worst_oracle = 0, worst_applied = 0;
+  int rigid_siblings = 0;
+  for (const char* scene : {"chain", "random_tree", "protein_like"}) {
+    for (unsigned seed = 1; seed <= 2; ++seed) {
+      SceneOptions o;
+      o.n = 80;
+      o.seed = seed;
+      o.mixed_joints = std::string(scene) == "random_tree";
+      auto model = make_scene(scene, o);
+      const Model& m = *model;
+      const auto& t = m.tree;
+      std::mt19937 rng(seed * 101 + m.nbodies);
+      std::uniform_int_distribution<int> body(1, m.nbodies - 1);
+      for (int nf : {1, 3, 6}) {
+        std::vector<int> bodies;
+        for (int g = 0; g < nf; ++g) bodies.push_back(g == 2 ? bodies[0] : body(rng));
+        // Active region: the grabbed leaves' ancestors plus the path to one random extra node.
+        std::vector<char> active(t.nnodes(), 0);
+        for (int k : bodies)
+          for (int n = t.up[t.leaf_of_body[k]]; n >= 0; n = t.up[n]) active[n] = 1;
+        for (int n = t.up[t.leaf_of_body[body(rng)]]; n >= 0; n = t.up[n]) active[n] = 1;
+        State st = random_state(m, 40 + seed);
+        Data d(m);
+        AdaptiveData ad(m);
+        set_active_region(m, d, st, ad, active);   // zeroes q̇ of the locked joints
+        adaptive_forward_dynamics(m, d, st, ad);
+        ASSERT_EQ(d.diag.singular_pivots, 0);
+        std::uniform_real_distribution<double> u(-0.3, 0.3);
+        std::vector<Grab> grabs;
+        for (int k : bodies) {
+          Grab g;
+          g.body = k;
+          g.point = d.r[k] + d.R[k] * Vec3(u(rng), u(rng), u(rng));
+          grabs.push_back(g);
+        }
+        const auto fu = random_forces(nf, rng);
+        CouplingSnapshot snap;
+        make_coupling_snapshot(m, d, grabs, {}, 1, 0, snap);
+        CouplingWorkspace ws(snap);
+        std::vector<Vec6> feed(nf);
+        ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
+        EXPECT_EQ(ws.nodes_read, extended_region_size(m, grabs));
+        for (int n = 0; n < t.nnodes(); ++n)
+          if (!t.is_leaf(n) && !active[n] && t.up[n] >= 0 && active[t.up[n]]) ++rigid_siblings;
+
+        // Hybrid pass with the user forces applied.
+        State st2 = apply_user_forces(m, d, st, grabs, fu);
+        Data d2(m);
+        AdaptiveData ad2(m);
+        set_active_region(m, d2, st2, ad2, active);
+        adaptive_forward_dynamics(m, d2, st2, ad2);
+        // Oracle with the locked DOFs removed; body velocities from full kinematics.
+        std::vector<bool> locked(m.nv, true);
+        for (int J : ad2.active_joints)
+          for (int a = 0; a < m.v_num[J]; ++a) locked[m.v_adr[J] + a] = false;
+        const auto orc = oracle_forward_dynamics(m, st2, locked);
+        Data kin(m);
+        forward_kinematics(m, kin, st2.q);
+        body_dynamics_terms(m, kin, st2);
+        for (int g = 0; g < nf; ++g) {
+          const int k = grabs[g].body, leaf = t.leaf_of_body[k];
+          Vec6 fu_k = Vec6::Zero();
+          for (int g2 = 0; g2 < nf; ++g2)
+            if (grabs[g2].body == k) fu_k += shift_force(fu[g2], d2.r[k] - grabs[g2].point);
+          Vec6 ref = d2.f_total[k] - fu_k;
+          for (int x = 0; x < t.handle_num[leaf]; ++x) {
+            const int jx = t.handle(leaf, x);
+            ref += shift_force(d2.f(leaf, x), -(jx == k ? Vec3::Zero() : Vec3(d2.d[jx])));
+          }
+          const Vec3 to_grab = grabs[g].point - d2.r[k];
+          worst_full = std::max(worst_full, rel6(feed[g], shift_force(ref, to_grab)));
+          const Vec6 fo = kin.I[k] * orc.body_acc[k] +
+                          cross_force(kin.v[k], kin.I[k] * kin.v[k]) - fu_k;
+          worst_oracle = std::max(worst_oracle, rel6(feed[g], shift_force(fo, to_grab)));
+        }
+        // Snapshot from the hybrid pass WITH f_u applied (β_ext recovery on hybrid data).
+        CouplingSnapshot snap2;
+        make_coupling_snapshot(m, d2, grabs, fu, 2, 0, snap2);
+        std::vector<Vec6> feed2(nf);
+        ASSERT_EQ(coupling_forces(snap2, fu.data(), ws, feed2.data()), CouplingStatus::kOk);
+        for (int g = 0; g < nf; ++g) worst_applied = std::max(worst_applied, rel6(feed2[g], feed[g]));
+      }
+    }
+  }
+  EXPECT_GT(rigid_siblings, 0);   // the test did exercise composite rigid siblings
+  EXPECT_LE(worst_full, 1e-10);
+  EXPECT_LE(worst_oracle, 1e-10);
+  EXPECT_LE(worst_applied, 1e-10);
+  std::printf("[ coupling ] hybrid: full %.2e  oracle %.2e  applied %.2e  (rigid siblings %d)\n",
+              worst_full, worst_oracle, worst_applied, rigid_siblings);
+}
 
 TEST(Coupling, JointOwnersOfTheGrabbedBodyLieInItsUpRegion) {
   for (const char* scene : {"chain", "random_tree", "binary_tree", "protein_like", "star"}) {
