@@ -1,0 +1,63 @@
+// After set-up, a molecular step (kinematics, force field incl. neighbour-list rebuilds and rigid
+// regions, DCA, integration) allocates nothing: count every operator new in this binary.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <cmath>
+#include <cstdlib>
+#include <new>
+
+#include "haptree/dca.hpp"
+#include "haptree/molecule/scene.hpp"
+
+static std::atomic<long> g_allocs{0};
+void* operator new(std::size_t n) {
+  ++g_allocs;
+  if (void* p = std::malloc(n ? n : 1)) return p;
+  throw std::bad_alloc();
+}
+void* operator new[](std::size_t n) { return operator new(n); }
+void* operator new(std::size_t n, std::align_val_t al) {
+  ++g_allocs;
+  const std::size_t a = static_cast<std::size_t>(al);
+  if (void* p = std::aligned_alloc(a, (n + a - 1) & ~(a - 1))) return p;
+  throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete(void* p, std::size_t) noexcept { std::free(p); }
+void operator delete[](void* p) noexcept { std::free(p); }
+void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+void operator delete(void* p, std::align_val_t) noexcept { std::free(p); }
+void operator delete(void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+
+namespace haptree {
+namespace {
+
+TEST(MoleculeAllocation, ForceFieldAndStepAllocateNothing) {
+  for (const char* name : {"ala20", "polyaniline", "bacteriorhodopsin"}) {
+    mol::MolecularScene sc = mol::load_molecular_scene(name);
+    const Model& m = *sc.model;
+    State st(m);
+    Data d(m);
+    std::vector<int> region(m.nbodies);
+    for (int b = 0; b < m.nbodies; ++b) region[b] = b / 4;
+    forward_kinematics(m, d, st.q);
+    sc.compute(d, st.f_ext);   // warm-up
+    const long before = g_allocs.load();
+    const int rebuilds0 = sc.force_field->neighbour_rebuilds();
+    for (int i = 0; i < 6; ++i) {
+      for (int k = 0; k < st.q.size(); ++k) st.q(k) += 0.01 * std::sin(k + i);   // forces rebuilds
+      forward_kinematics(m, d, st.q);
+      sc.compute(d, st.f_ext);
+      if (i == 2) sc.force_field->set_rigid_regions(region);
+      if (i == 4) sc.force_field->clear_rigid_regions();
+      forward_dynamics(m, d, st);
+      integrate(m, st.q, st.qd, d.qdd, 1e-4);
+    }
+    EXPECT_EQ(g_allocs.load() - before, 0) << name;
+    EXPECT_GT(sc.force_field->neighbour_rebuilds(), rebuilds0) << name;
+  }
+}
+
+}  // namespace
+}  // namespace haptree
