@@ -44,6 +44,17 @@ struct MolecularScene {
   void atom_positions(const Data& data, std::vector<Vec3>& x) const {
     torsion.atom_positions(data.R, data.r, x);
   }
+  // World position of one atom (after forward_kinematics).
+  Vec3 atom_position(const Data& data, int atom) const {
+    const int b = torsion.atom_model_body[atom];
+    return data.r[b] + data.R[b] * torsion.atom_local[atom];
+  }
+  // Adds a force F (kJ/mol/nm, world) acting on `atom` to f_ext (e.g. a haptic pull on one atom).
+  void add_atom_force(const Data& data, int atom, const Vec3& F, std::vector<Vec6>& f_ext) const {
+    const int b = torsion.atom_model_body[atom];
+    f_ext[b].head<3>() += (data.R[b] * torsion.atom_local[atom]).cross(F);
+    f_ext[b].tail<3>() += F;
+  }
 };
 
 // Data directory: $HAPTREE_DATA_DIR if set; else <exe dir>/../data, <exe dir>/../../data,
@@ -61,6 +72,7 @@ MolecularScene load_molecular_scene(const std::string& name_or_path, const Scene
 // Multi-model PDB trajectory (MODEL/ENDMDL, coordinates in Å) readable by VMD and PyMOL.
 class PdbTrajectoryWriter {
  public:
+  // Keeps a reference to `s`: the Structure must outlive the writer.
   PdbTrajectoryWriter(const std::string& path, const Structure& s);
   void write_frame(const std::vector<Vec3>& x_nm);   // throws on I/O error
   void close();

@@ -549,6 +549,29 @@ TEST(MoleculeScene, DynamicsStepsAndTrajectoryIsReadable) {
   fs::remove(p);
 }
 
+TEST(MoleculeScene, AtomForceMovesTheAtomAlongThePull) {
+  MolecularScene& sc = scene("ala20");
+  const Model& m = *sc.model;
+  State st(m);
+  Data d(m);
+  forward_kinematics(m, d, st.q);
+  const int atom = sc.natoms() - 3;   // near the free C-terminal end
+  const Vec3 x0 = sc.atom_position(d, atom);
+  std::vector<Vec3> xs;
+  sc.atom_positions(d, xs);
+  EXPECT_LT((xs[atom] - x0).norm(), 1e-15);
+  const Vec3 F(0, 0, 500.0);   // kJ/mol/nm, only this load (no force field)
+  for (auto& f : st.f_ext) f.setZero();
+  sc.add_atom_force(d, atom, F, st.f_ext);
+  forward_dynamics(m, d, st);
+  // Power = F·v_atom = qd^T tau-equivalent > 0: after one small step the atom moved along F.
+  integrate(m, st.q, st.qd, d.qdd, 1e-4);
+  integrate_positions(m, st.q, st.qd, 1e-4);
+  forward_kinematics(m, d, st.q);
+  const Vec3 dx = sc.atom_position(d, atom) - x0;
+  EXPECT_GT(dx.dot(F), 0.0);
+}
+
 TEST(MoleculeScene, NamesResolveAndFreeRootAddsSixDof) {
   for (const auto& n : molecular_scene_names()) EXPECT_TRUE(fs::exists(resolve_molecule_path(n))) << n;
   EXPECT_THROW(resolve_molecule_path("no-such-molecule"), std::runtime_error);
