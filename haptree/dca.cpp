@@ -153,11 +153,11 @@ inline Mat6 shift_rows(const Vec3& dv, const Mat6& A) {
   B.bottomRows<3>() -= D * A.topRows<3>();
   return B;
 }
-// A M(d)ᵀ: columns [A_left + A_right·[d]×ᵀ … ] — M(d)ᵀ = [[1, [d]×],[0, 1]].
+// A M(d)ᵀ with M(d)ᵀ = [[1, [d]×],[0, 1]]: columns [A_left, A_right + A_left [d]×].
 inline Mat6 shift_cols(const Mat6& A, const Vec3& dv) {
   Mat6 B = A;
   const Mat3 D = skew(dv);
-  B.leftCols<3>() -= A.rightCols<3>() * D;
+  B.rightCols<3>() += A.leftCols<3>() * D;
   return B;
 }
 

@@ -97,7 +97,9 @@ INSTANTIATE_TEST_SUITE_P(
                       Case{"chain", 64, false, false, 1e-11},
                       Case{"chain", 1024, false, false, 1e-10},
                       Case{"binary_tree", 63, false, true, 1e-10},
-                      Case{"binary_tree", 1023, false, false, 1e-10},
+                      // Random-geometry binary tree, depth 10: round-off alone moves seed 1 between
+                      // 2.9e-11 and 1.4e-10 depending on operation order (measured), hence 3e-10.
+                      Case{"binary_tree", 1023, false, false, 3e-10},
                       Case{"random_tree", 16, true, true, 1e-10},
                       Case{"random_tree", 64, true, true, 1e-10},
                       Case{"random_tree", 1024, true, true, 1e-10},
