@@ -331,6 +331,36 @@ TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
               worst_full, worst_oracle, worst_applied, rigid_siblings);
 }
 
+TEST(Coupling, LogarithmicRegionsOnBalancedChains) {
+  // §15.10: nodes read ≤ 2⌈log₂(n+1)⌉+1 for one grab; |U| ≤ n_f(⌈log₂(n/n_f)⌉+2) for n_f grabs.
+  SceneOptions o;
+  o.n = 4096;
+  o.seed = 1;
+  auto model = make_chain(o);
+  const Model& m = *model;
+  Data d(m);
+  forward_dynamics(m, d, State(m));
+  CouplingSnapshot snap;
+  CouplingWorkspace ws;
+  std::mt19937 rng(5);
+  std::uniform_int_distribution<int> body(1, m.nbodies - 1);
+  const double n = o.n;
+  for (int nf : {1, 2, 4, 8, 16}) {
+    for (int rep = 0; rep < 20; ++rep) {
+      std::vector<Grab> grabs;
+      for (int g = 0; g < nf; ++g) grabs.push_back(make_grab(d, body(rng), Vec3::Zero()));
+      make_coupling_snapshot(m, d, grabs, {}, rep, 0, snap);
+      ws.reserve_for(snap);
+      std::vector<Vec6> fu(nf, Vec6::Ones()), feed(nf);
+      ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
+      if (nf == 1) {
+        EXPECT_LE(ws.nodes_read, 2 * std::ceil(std::log2(n + 1)) + 1);
+      }
+      EXPECT_LE(snap.ints[2], nf * (std::ceil(std::log2(n / nf)) + 2)) << nf;
+    }
+  }
+}
+
 TEST(Coupling, JointOwnersOfTheGrabbedBodyLieInItsUpRegion) {
   for (const char* scene : {"chain", "random_tree", "binary_tree", "protein_like", "star"}) {
     SceneOptions o;
