@@ -203,6 +203,14 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
   const double rl = o_.r_off + o_.skin;
   Vec3 lo = x[0], hi = x[0];
   for (int a = 1; a < n_; ++a) { lo = lo.cwiseMin(x[a]); hi = hi.cwiseMax(x[a]); }
+  bool finite = true;
+  for (int a = 0; a < n_; ++a) finite = finite && x[a].allFinite();
+  if (!finite) {   // a blown-up state: empty list (the energy comes out non-finite), no growth
+    std::fill(row_.begin(), row_.end(), 0);
+    npairs_ = 0;
+    list_valid_ = false;
+    return;
+  }
   const Vec3 ext = (hi - lo).cwiseMax(Vec3::Constant(1e-9));
   double cs = rl;
   int nc[3];
