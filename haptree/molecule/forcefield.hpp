@@ -43,6 +43,7 @@ class Evaluator {
             const std::vector<Vec3>& x0, const NonbondedOptions& o = {});
 
   // Energy and per-atom forces of the moving part of the scene at positions x (plus the constant).
+  // Non-finite positions (a blown-up state) give an empty pair list and a non-finite energy.
   double compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms = nullptr);
   // Atom positions from data.R / data.r (after forward_kinematics), energy, and f_ext[k] = the
   // total force on body k as [moment about r_k; force], world axes. f_ext is overwritten (size
