@@ -24,7 +24,7 @@ struct ModelError : std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-// Units are the scene's: SI for robots; Å, amu, ps, kJ/mol for molecules (docs/units.md).
+// Units are the scene's: SI for robots; nm, ps, amu, kJ/mol, e for molecules (docs/molecules.md).
 struct Model {
   int nbodies = 0;   // body 0 is the ground (world); joint k (k >= 1) connects parent[k] -> k
   int nq = 0;        // configuration coordinates

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The README's main command: install what is missing, build, and run the embedded default
-# (sim_server + coupler + device_bridge on this host with a simulated device).
+# (sim_server + coupler + device_bridge in one process over memq:// with a simulated device).
+# Arguments are passed to haptree_run (try --help).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install_deps.sh
+echo "[haptree] building (log: build.log) ..."
 bash scripts/build.sh > build.log 2>&1 || { tail -50 build.log; exit 1; }
 exec ./build/tools/haptree_run "$@"
