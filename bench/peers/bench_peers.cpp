@@ -1,0 +1,258 @@
+// bench_peers: haptree against MuJoCo, Simbody and Bullet btMultiBody on the same models, in one run.
+// For every model: µs per forward-dynamics call (median over repetitions, each call timed on its
+// own) and the relative error ‖q̈ − q̈_oracle‖/‖q̈_oracle‖ of each engine against the long-double
+// CRBA/RNEA oracle at one random state (same q, q̇, τ, gravity; no external forces).
+// Before scaling up, every engine is checked against the oracle on 2- and 3-link models with
+// random frames, axes and full inertias; an engine that disagrees (> 1e-8) is reported and dropped.
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <sstream>
+
+#include "bench/peers/peer_engine.hpp"
+#include "haptree/dca.hpp"
+#include "haptree/scenes.hpp"
+#include "tests/support/oracle.hpp"
+#ifdef HAPTREE_PEERS_ADAPTIVE
+#include "haptree/adaptive.hpp"
+#endif
+
+using namespace haptree;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+using Factory = std::function<std::unique_ptr<peers::PeerEngine>(const Model&)>;
+
+std::map<std::string, Factory> factories() {
+  std::map<std::string, Factory> f;
+  f["haptree"] = peers::make_haptree_engine;
+#ifdef HAPTREE_PEER_MUJOCO
+  f["mujoco"] = [](const Model& m) { return peers::make_mujoco_engine(m, false); };
+  f["mujoco_diaginertia"] = [](const Model& m) { return peers::make_mujoco_engine(m, true); };
+#endif
+#ifdef HAPTREE_PEER_SIMBODY
+  f["simbody"] = peers::make_simbody_engine;
+#endif
+#ifdef HAPTREE_PEER_BULLET
+  f["bullet"] = peers::make_bullet_engine;
+#endif
+  return f;
+}
+
+State bench_state(const Model& m, unsigned seed) {
+  State st = testing::random_state(m, seed);
+  for (auto& f : st.f_ext) f.setZero();
+  return st;
+}
+
+struct Timing {
+  double median_us = 0, min_us = 0;
+  int reps = 0;
+};
+
+Timing time_calls(const std::function<void()>& call, double min_seconds, int min_reps,
+                  int max_reps) {
+  const auto w0 = Clock::now();
+  call();   // warm-up
+  call();
+  // Very slow calls (O(n^3) engines on long chains): 3 timed calls are enough for a median.
+  if (std::chrono::duration<double>(Clock::now() - w0).count() > 2.0) min_reps = std::min(min_reps, 3);
+  std::vector<double> us;
+  const auto start = Clock::now();
+  while (static_cast<int>(us.size()) < max_reps &&
+         (static_cast<int>(us.size()) < min_reps ||
+          std::chrono::duration<double>(Clock::now() - start).count() < min_seconds)) {
+    const auto t0 = Clock::now();
+    call();
+    us.push_back(std::chrono::duration<double, std::micro>(Clock::now() - t0).count());
+  }
+  Timing t;
+  t.reps = static_cast<int>(us.size());
+  std::sort(us.begin(), us.end());
+  t.median_us = us[us.size() / 2];
+  t.min_us = us.front();
+  return t;
+}
+
+// Small models with random joint frames, axes, COMs and full (rotated) inertias, plus a fixed joint.
+std::vector<std::pair<std::string, std::shared_ptr<const Model>>> check_models() {
+  std::vector<std::pair<std::string, std::shared_ptr<const Model>>> out;
+  SceneOptions o;
+  o.n = 2;
+  o.seed = 3;
+  out.emplace_back("chain2_random", make_chain(o));
+  o.seed = 0;
+  out.emplace_back("chain2_regular", make_chain(o));
+  ModelBuilder b;
+  const Mat3 R1 = Eigen::AngleAxisd(0.7, Vec3(1, 2, 3).normalized()).toRotationMatrix();
+  const Mat3 R2 = Eigen::AngleAxisd(-1.1, Vec3(-2, 1, 0.5).normalized()).toRotationMatrix();
+  Mat3 I1;
+  I1 << 0.05, 0.004, -0.002, 0.004, 0.03, 0.001, -0.002, 0.001, 0.04;
+  b.add_body("base", 0, JointType::kFixed, Vec3(0.1, -0.2, 0.3), R1, Vec3::UnitZ(), 2.0,
+             Vec3(0.05, 0.01, 0), I1);
+  b.add_body("l1", 1, JointType::kRevolute, Vec3(0.2, 0.1, 0), R2, Vec3(0.3, -0.5, 0.8).normalized(),
+             1.3, Vec3(0.12, -0.03, 0.02), R2 * I1 * R2.transpose());
+  b.add_body("l2", 2, JointType::kRevolute, Vec3(0.25, 0, 0.05), R1 * R2,
+             Vec3(-0.6, 0.2, 0.4).normalized(), 0.7, Vec3(0.1, 0.02, -0.01), 0.5 * I1);
+  out.emplace_back("fixed_plus_2", b.build());
+  return out;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"haptree vs MuJoCo / Simbody / Bullet: forward-dynamics time and accuracy"};
+  std::string csv = "bench_peers.csv";
+  std::vector<std::string> models{"chain", "binary_tree", "protein_like"};
+  std::vector<int> sizes{16, 64, 256, 1024, 4096};
+  std::vector<std::string> engines;
+  double min_seconds = 0.3;
+  int min_reps = 7, max_reps = 20000, oracle_max_nv = 4096;
+  unsigned seed = 1;
+  bool check_only = false;
+  std::vector<int> budgets{48, 128};
+  app.add_option("--csv", csv, "CSV output path")->capture_default_str();
+  app.add_option("--models", models, "chain, binary_tree, protein_like")->capture_default_str();
+  app.add_option("--sizes", sizes, "body counts for chain and binary_tree")->capture_default_str();
+  app.add_option("--engines", engines, "subset of engines (default: all compiled in)");
+  app.add_option("--min-seconds", min_seconds, "minimum timing time per engine and model [s]")
+      ->capture_default_str();
+  app.add_option("--min-reps", min_reps, "minimum timed calls")->capture_default_str();
+  app.add_option("--max-reps", max_reps, "maximum timed calls")->capture_default_str();
+  app.add_option("--oracle-max-nv", oracle_max_nv, "skip the O(n^3) oracle above this many DOFs")
+      ->capture_default_str();
+  app.add_option("--seed", seed, "random state seed")->capture_default_str();
+  app.add_option("--budgets", budgets, "adaptive DOF budgets k (if the adaptive layer is built)")
+      ->capture_default_str();
+  app.add_flag("--check-only", check_only, "only run the small-model frame-convention check");
+  CLI11_PARSE(app, argc, argv);
+
+  auto all = factories();
+  if (engines.empty())
+    for (auto& [name, f] : all)
+      if (name != "mujoco_diaginertia") engines.push_back(name);   // a diagnostic variant
+  for (const char* p : {"mujoco", "simbody", "bullet"})
+    if (!all.count(p)) std::printf("peer %s: not compiled in (library not found at build time), skipped\n", p);
+
+  // 1. Frame-convention check on small models.
+  std::vector<std::string> verified;
+  std::printf("== convention check (relative q̈ error vs long-double oracle, must be <= 1e-8)\n");
+  auto checks = check_models();
+  for (const auto& name : engines) {
+    if (!all.count(name)) {
+      std::printf("%-8s unknown or not compiled in, skipped\n", name.c_str());
+      continue;
+    }
+    double overall = 0;
+    std::string why;
+    for (auto& [mname, model] : checks) {
+      double worst = 0;
+      try {
+        auto eng = all[name](*model);
+        for (unsigned s = 1; s <= 3; ++s) {
+          const State st = bench_state(*model, s);
+          eng->compute(st);
+          const auto ref = testing::oracle_forward_dynamics(*model, st);
+          const double e = testing::rel_err(eng->qdd(), ref.qdd);
+          if (!(e <= worst)) worst = e;   // NaN-propagating max
+        }
+      } catch (const std::exception& ex) {
+        why = ex.what();
+        worst = INFINITY;
+      }
+      std::printf("%-8s %-16s worst rel err %.3e\n", name.c_str(), mname.c_str(), worst);
+      if (!(worst <= overall)) overall = worst;
+    }
+    if (overall <= 1e-8) verified.push_back(name);
+    else std::printf("%-8s FAILED the convention check%s%s: dropped\n", name.c_str(),
+                     why.empty() ? "" : ": ", why.c_str());
+  }
+  if (check_only) return verified.size() == engines.size() ? 0 : 1;
+
+  // 2. The scaled run.
+  std::ofstream out(csv);
+  // rel_err: against the full oracle. rel_err_locked: against the oracle with the DOFs the engine
+  // leaves out locked (adaptive rows: the inactive joints; equal to rel_err for full engines).
+  out << "engine,model,bodies,nv,us_median,us_min,reps,rel_err,max_abs_err,rel_err_locked,timed_call\n";
+  std::vector<std::pair<std::string, int>> jobs;
+  for (const auto& m : models) {
+    if (m == "protein_like") jobs.emplace_back(m, 857);
+    else
+      for (int n : sizes) jobs.emplace_back(m, n);
+  }
+  std::printf("== %-12s %6s %6s  %-20s %12s %10s %10s %6s\n", "model", "bodies", "nv", "engine",
+              "us_median", "rel_err", "rel_locked", "reps");
+  for (const auto& [mname, n] : jobs) {
+    SceneOptions o;
+    o.n = n;
+    auto model = make_scene(mname, o);
+    const State st = bench_state(*model, seed);
+    Eigen::VectorXd ref;
+    bool have_ref = model->nv <= oracle_max_nv;
+    if (have_ref) ref = testing::oracle_forward_dynamics(*model, st).qdd;
+    auto emit = [&](const std::string& eng, const Timing& t, const Eigen::VectorXd& qdd,
+                    const std::string& what, double e_locked) {
+      const double e = have_ref ? testing::rel_err(qdd, ref) : NAN;
+      if (std::isnan(e_locked)) e_locked = e;
+      const double a = have_ref ? (qdd - ref).cwiseAbs().maxCoeff() : NAN;
+      std::printf("   %-12s %6d %6d  %-20s %12.2f %10.2e %10.2e %6d\n", mname.c_str(),
+                  model->nbodies - 1, model->nv, eng.c_str(), t.median_us, e, e_locked, t.reps);
+      std::fflush(stdout);
+      out << eng << "," << mname << "," << model->nbodies - 1 << "," << model->nv << ","
+          << t.median_us << "," << t.min_us << "," << t.reps << "," << e << "," << a << "," << e_locked << ",\""
+          << what << "\"\n";
+      out.flush();
+    };
+    for (const auto& name : verified) {
+      std::unique_ptr<peers::PeerEngine> eng;
+      try {
+        eng = all[name](*model);
+      } catch (const std::exception& ex) {
+        std::printf("   %-12s %-8s skipped: %s\n", mname.c_str(), name.c_str(), ex.what());
+        continue;
+      }
+      const Timing t = time_calls([&] { eng->compute(st); }, min_seconds, min_reps, max_reps);
+      emit(name, t, eng->qdd(), eng->timed_call(), NAN);
+    }
+#ifdef HAPTREE_PEERS_ADAPTIVE
+    for (int k : budgets) {
+      if (k >= model->nv) continue;
+      Data data(*model);
+      State ast = st;
+      AdaptiveData ad(*model);
+      AdaptiveOptions opt;
+      opt.mode = AdaptiveOptions::Mode::kBudget;
+      opt.budget = k;
+      select_active_region(*model, data, ast, ad, opt);
+      // Error of the hybrid q̈ against the full oracle at the same (reduced-velocity) state.
+      const Timing t = time_calls([&] { adaptive_forward_dynamics(*model, data, ast, ad); },
+                                  min_seconds, min_reps, max_reps);
+      // Reference at the adaptive state (inactive q̇ zeroed by the velocity policy), full and with
+      // the inactive DOFs locked (the hybrid dynamics must match the latter exactly).
+      Eigen::VectorXd aref = ref;
+      double e_locked = NAN;
+      if (have_ref) {
+        aref = testing::oracle_forward_dynamics(*model, ast).qdd;
+        std::vector<bool> locked(model->nv, true);
+        for (int j : ad.active_joints)
+          for (int i = 0; i < model->v_num[j]; ++i) locked[model->v_adr[j] + i] = false;
+        e_locked = testing::rel_err(data.qdd,
+                                    testing::oracle_forward_dynamics(*model, ast, locked).qdd);
+      }
+      std::swap(ref, aref);
+      emit("haptree_adaptive_k" + std::to_string(k), t, data.qdd,
+           "adaptive_forward_dynamics on a budget-k active region (selection not timed)", e_locked);
+      std::swap(ref, aref);
+    }
+#endif
+  }
+  std::printf("wrote %s\n", csv.c_str());
+  return 0;
+}

@@ -1,0 +1,60 @@
+// Near-singular configurations against the long-double oracle, in the range that holds
+// (tools/stress_report finds where it breaks: docs/accuracy_and_stability.md).
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "tests/stress/stress_scenes.hpp"
+
+namespace haptree::stress {
+namespace {
+
+// Mass ratio r between neighbouring links, r = 1e-6 … 1e6: the error grows ∝ max(r, 1/r)
+// (measured 2.5e-8 at 1e-6 and 3.8e-8 at 1e6, i.e. ≤ 4.2e-14·max(r, 1/r) across the sweep).
+TEST(NearSingular, MassRatiosBetweenNeighbours) {
+  for (int e = -6; e <= 6; ++e) {
+    const double r = std::pow(10.0, e);
+    auto m = mass_ratio_chain(16, r);
+    const State st = clean_state(*m, 7);
+    const auto fd = dca(*m, st);
+    ASSERT_TRUE(all_finite(fd.qdd)) << r;
+    EXPECT_EQ(fd.singular_pivots, 0) << r;
+    const double err = testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd);
+    EXPECT_LE(err, 1.5e-13 * std::max(r, 1 / r) + 1e-12) << "ratio " << r;
+  }
+}
+
+// Coaxial joints separated by a rod whose axial inertia is scaled by a = 1 … 1e-6: cond(H) grows
+// ∝ 1/a (8e5 → 8e11) and the error with it (measured ≤ 9e-15 / a).
+TEST(NearSingular, AlignedAxes) {
+  for (int e = 0; e >= -6; --e) {
+    const double a = std::pow(10.0, e);
+    auto m = coaxial_chain(15, a);
+    const State st = clean_state(*m, 9);
+    const auto fd = dca(*m, st);
+    ASSERT_TRUE(all_finite(fd.qdd)) << a;
+    EXPECT_EQ(fd.singular_pivots, 0) << a;
+    const double err = testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd);
+    EXPECT_LE(err, 3e-14 / a) << "axial " << a;
+  }
+}
+
+// A straight planar chain (all axes parallel, all links aligned: the arm's kinematic singularity)
+// is not a dynamic singularity: q̈ stays accurate.
+TEST(NearSingular, StretchedPlanarChain) {
+  ModelBuilder b;
+  int prev = 0;
+  for (int i = 1; i <= 32; ++i)
+    prev = b.add_body("l" + std::to_string(i), prev, JointType::kRevolute,
+                      prev == 0 ? Vec3::Zero() : Vec3(0.3, 0, 0), Mat3::Identity(), Vec3::UnitZ(),
+                      1.0, Vec3(0.15, 0, 0), Vec3(2.7e-4, 7.6e-3, 7.6e-3).asDiagonal());
+  auto m = b.build();
+  State st = clean_state(*m, 2);
+  st.q.setZero();
+  const auto fd = dca(*m, st);
+  ASSERT_TRUE(all_finite(fd.qdd));
+  EXPECT_LE(testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd), 1e-9);
+}
+
+}  // namespace
+}  // namespace haptree::stress
