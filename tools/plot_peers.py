@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Plot bench_peers CSV: time per forward-dynamics call vs n per engine, and error vs the oracle.
 
-usage: tools/plot_peers.py bench_peers.csv -o docs/benchmarks_peers.png
+usage: tools/plot_peers.py bench_peers.csv -o docs/benchmarks_peers.png [--table]
+--table also prints the CSV as a markdown table (µs median, relative errors) on stdout.
 """
 import argparse
 import csv
@@ -17,8 +18,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("csv")
     ap.add_argument("-o", "--out", default="benchmarks_peers.png")
+    ap.add_argument("--table", action="store_true", help="print a markdown table on stdout")
     a = ap.parse_args()
     rows = list(csv.DictReader(open(a.csv)))
+    if a.table:
+        print("| model | DOF | engine | µs / call (median) | reps | rel. error vs oracle | "
+              "rel. error vs oracle, inactive DOFs locked |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['model']} | {r['nv']} | {r['engine']} | {float(r['us_median']):.4g} | "
+                  f"{r['reps']} | {float(r['rel_err']):.2e} | {float(r['rel_err_locked']):.2e} |")
     models = sorted({r["model"] for r in rows if r["model"] != "protein_like"})
     engines = sorted({r["engine"] for r in rows})
     fig, axes = plt.subplots(2, len(models) + 1, figsize=(5 * (len(models) + 1), 8))
@@ -59,7 +68,8 @@ def main():
         ax.grid(True, axis="y", which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(a.out, dpi=110)
-    print("wrote", a.out)
+    if not a.table:
+        print("wrote", a.out)
 
 
 if __name__ == "__main__":
