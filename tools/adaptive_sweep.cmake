@@ -9,6 +9,8 @@ if(CLI11_FOUND)
     target_compile_definitions(adaptive_sweep PRIVATE HAPTREE_SWEEP_MOLECULES=1)
   endif()
   if(HAPTREE_BUILD_TESTS)
+    # tools/ is added before the top-level enable_testing(): enable it here so the test registers.
+    enable_testing()
     # Smoke run (< 20 s): small scenes, fails on non-finite states or a budget overrun.
     add_test(NAME adaptive_sweep_smoke
              COMMAND adaptive_sweep --smoke --csv ${CMAKE_CURRENT_BINARY_DIR}/adaptive_sweep_smoke.csv)

@@ -83,6 +83,7 @@ struct Result {
   std::vector<double> cpu, wall, ff_cpu;   // per step (µs), after warm-up
   std::vector<double> neglected, total, active, nodes;
   int active_max = 0;
+  double v1_jump = 0;   // Σ over selections of KE(q̇ with the new inactive joints zeroed) − KE(q̇)
   Eigen::VectorXd q, qd;
   double energy = 0;
   bool finite = true;
@@ -131,17 +132,28 @@ Result run_full(const Scene& sc, const State& init, int warmup) {
   return r;
 }
 
-Result run_adaptive(const Scene& sc, const State& init, const AdaptiveOptions& ao, int warmup) {
+Result run_adaptive(const Scene& sc, const State& init, const AdaptiveOptions& ao, int warmup,
+                    bool fresh_poses) {
   const Model& m = *sc.model;
   State st = init;
   Data d(m);
   AdaptiveData ad(m);
   Result r;
   forward_kinematics(m, d, st.q);
+  Data dk(m);   // untimed: kinetic energy before/after the V1 zeroing at each selection
+  State pre = st;
+  auto kinetic = [&](const State& x) {
+    forward_kinematics(m, dk, x.q);
+    body_dynamics_terms(m, dk, x);
+    return kinetic_energy(m, dk);
+  };
   for (int s = 0; s < sc.steps; ++s) {
+    pre.q = st.q;
+    pre.qd = st.qd;
     const double w0 = wall_us(), c0 = cpu_us();
     // Poses of bodies inside rigid regions (needed by the loads); the first step has full poses.
-    if (s > 0) update_all_body_poses(m, d, ad);
+    if (fresh_poses) forward_kinematics(m, d, st.q);   // diagnostic: O(n) poses of the current q
+    else if (s > 0) update_all_body_poses(m, d, ad);
     sc.loads(d, st.f_ext);
     const double cf = cpu_us();
     const AdaptiveReport& rep = adaptive_step(m, d, st, ad, ao, sc.dt);
@@ -151,6 +163,13 @@ Result run_adaptive(const Scene& sc, const State& init, const AdaptiveOptions& a
       r.wall.push_back(w1 - w0);
       r.ff_cpu.push_back(cf - c0);
       r.nodes.push_back(double(rep.nodes_bottom_up + rep.nodes_top_down));
+    }
+    if (rep.reselected) {
+      const double ke0 = kinetic(pre);
+      Eigen::VectorXd keep = Eigen::VectorXd::Zero(m.nv);
+      for (int J : ad.active_joints) keep.segment(m.v_adr[J], m.v_num[J]).setOnes();
+      pre.qd = pre.qd.cwiseProduct(keep);
+      r.v1_jump += kinetic(pre) - ke0;
     }
     r.neglected.push_back(rep.neglected_metric);
     r.total.push_back(rep.total_metric);
@@ -189,6 +208,7 @@ struct Config {
   double init_qd_rad_s = 0.0;
   unsigned seed = 1;
   int chain_n = 4096;
+  bool fresh_poses = false;
 };
 
 Scene make_robot_scene(const std::string& name, const Config& c) {
@@ -267,7 +287,8 @@ int main(int argc, char** argv) {
       "Recorded per setting: step time (thread CPU, median/mean, us; dynamics + integration only,\n"
       "loads timed separately), speed-up vs full DCA, neglected metric (error estimate, mean/max),\n"
       "RMS q deviation and max body-origin deviation from the full run at the end, active DOFs,\n"
-      "nodes visited per hybrid pass, and total energy minus the full run's (V1 policy effect).\n"
+      "nodes visited per hybrid pass, total energy minus the full run's, and the sum over selections\n"
+      "of the kinetic-energy jumps made by the V1 policy (zeroing q̇ of newly inactive joints).\n"
       "Scenes: chain<N> (chain4096), protein_like (857 DOF), and molecule names/paths\n"
       "(bacteriorhodopsin, ala20, ...). Writes CSV and a Markdown table on stdout."};
   std::string scenes = "chain4096,protein_like,bacteriorhodopsin,ala20";
@@ -297,6 +318,9 @@ int main(int argc, char** argv) {
   app.add_option("--reselect-every", c.reselect_every, "steps between active-region selections")
       ->capture_default_str();
   app.add_option("--warmup", c.warmup, "first steps of each run not timed")->capture_default_str();
+  app.add_flag("--fresh-poses", c.fresh_poses,
+               "adaptive runs: forward_kinematics of the current q before the loads instead of "
+               "update_all_body_poses (diagnostic; the loads then see the integrated q)");
   app.add_option("--csv", csv_path, "CSV output path")->capture_default_str();
   app.add_flag("--smoke", smoke,
                "small fast run (chain256 + protein_like, 20 steps, k = 8,48,all, one eps) that "
@@ -323,11 +347,11 @@ int main(int argc, char** argv) {
          "speedup_median,speedup_mean,loads_cpu_us_median,whole_speedup_median,"
          "active_dofs_mean,active_dofs_max,nodes_visited_mean,full_nodes_visited,"
          "neglected_mean,neglected_max,total_metric_mean,neglected_rel_mean,rms_q_dev,"
-         "max_body_dev,energy_full,energy_adaptive,energy_diff,energy_initial,finite\n";
+         "max_body_dev,energy_full,energy_adaptive,energy_diff,energy_initial,finite,v1_ke_jump_sum\n";
   std::printf("| scene | DOF | setting | active DOF (mean/max) | step µs CPU (median / mean) | "
               "full DCA µs (median) | speed-up (median / mean) | nodes visited | neglected metric "
-              "(mean / max) | rel. to total | RMS q dev | max body dev | E − E_full |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+              "(mean / max) | rel. to total | RMS q dev | max body dev | E − E_full | V1 KE jumps |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   std::fflush(stdout);
 
   bool ok = true;
@@ -385,7 +409,7 @@ int main(int argc, char** argv) {
       ao.budget = st.budget;
       ao.epsilon = st.eps_rel * total0;
       ao.reselect_every = c.reselect_every;
-      const Result r = run_adaptive(sc, init, ao, c.warmup);
+      const Result r = run_adaptive(sc, init, ao, c.warmup, c.fresh_poses);
       const double med = median(r.cpu), mn = mean(r.cpu);
       const double loads = median(r.ff_cpu);
       const double neg_mean = mean(r.neglected);
@@ -404,11 +428,11 @@ int main(int argc, char** argv) {
         ok = false;
       }
       std::printf("| %s | %d | %s | %.1f / %d | %.1f / %.1f | %.1f | %.1f× / %.1f× | %.0f | "
-                  "%.3g / %.3g | %.2g | %.3g rad | %.3g %s | %.3g %s%s |\n",
+                  "%.3g / %.3g | %.2g | %.3g rad | %.3g %s | %.3g %s%s | %.3g |\n",
                   name.c_str(), m.nv, st.label.c_str(), act_mean, r.active_max, med, mn, full_med,
                   full_med / med, full_mean / mn, nodes, neg_mean, neg_max,
                   tot_mean > 0 ? neg_mean / tot_mean : 0.0, rms, body_dev, sc.length_unit.c_str(),
-                  dE, sc.energy_unit.c_str(), finite ? "" : " NON-FINITE");
+                  dE, sc.energy_unit.c_str(), finite ? "" : " NON-FINITE", r.v1_jump);
       std::fflush(stdout);
       csv << name << ',' << m.nv << ',' << (st.mode == AdaptiveOptions::Mode::kBudget ? "budget" : "threshold")
           << ',' << st.label << ',' << st.budget << ',' << ao.epsilon << ',' << st.eps_rel << ','
@@ -419,7 +443,7 @@ int main(int argc, char** argv) {
           << nodes << ',' << mean(full.nodes) << ',' << neg_mean << ',' << neg_max << ',' << tot_mean
           << ',' << (tot_mean > 0 ? neg_mean / tot_mean : 0.0) << ',' << rms << ',' << body_dev << ','
           << full.energy << ',' << r.energy << ',' << dE << ',' << E0 << ',' << (finite ? 1 : 0)
-          << '\n';
+          << ',' << r.v1_jump << '\n';
       csv.flush();
     }
   }
