@@ -1,0 +1,68 @@
+#pragma once
+// DeviceBridge: the paper's haptics loop as a class (STYLE.md §7.1), one per device. Runs a device from
+// the registry (scripted, virtual_hand, replay, or a plugged-in SDK) at its rate, publishes
+// DEVICE_STATE and applies the latest FEEDBACK. Link to the coupler: LCM, or same-host shared memory
+// (latest value) mirrored onto LCM at --mirror-rate-hz for lcm-logger.
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <string>
+
+#include "haptree/bus/bus.hpp"
+#include "haptree/bus/latency_histogram.hpp"
+#include "haptree/bus/latest_value.hpp"
+#include "haptree/bus/shm_channel.hpp"
+#include "haptree/device/device.hpp"
+#include "haptree/lcmt_device_state.hpp"
+#include "haptree/lcmt_feedback.hpp"
+
+namespace haptree {
+
+struct DeviceBridgeOptions {
+  int device = 0;
+  std::string kind = "scripted";                 // registry name
+  std::map<std::string, std::string> options;    // device options (key=value), see haptree/device/registry.cpp
+  double rate_hz = 1000;                         // device loop rate
+  double max_force_n = 3.0;
+  double feedback_timeout_s = 0.01;              // no feedback for this long -> render zero
+  bool shm = false;
+  double mirror_rate_hz = 100;
+  bool busy_poll = false;                        // poll shm feedback between ticks (latency benchmark)
+  std::string channel_suffix;
+};
+
+class DeviceBridge {
+ public:
+  DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options);
+  ~DeviceBridge();
+  int run(const std::atomic<bool>& stop);
+  device::Device& device() { return *device_; }
+  int64_t readings() const { return readings_.load(); }
+  int64_t feedbacks() const { return feedbacks_.load(); }
+  double last_force_n() const { return last_force_n_.load(); }
+  double max_force_seen_n() const { return max_force_n_.load(); }
+  // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
+  double latency_percentile_us(double q) const;
+  uint64_t latency_samples() const;
+
+ private:
+  void on_feedback(const lcmt_feedback& m, double now_s);
+  bus::Bus& bus_;
+  DeviceBridgeOptions opt_;
+  std::unique_ptr<device::Device> device_;
+  std::unique_ptr<bus::ShmWriter> shm_state_;
+  std::unique_ptr<bus::ShmReader> shm_feedback_;
+  bus::LatestValue<lcmt_feedback> fb_box_;
+  lcmt_feedback fb_{}, fb_shm_{};
+  std::string ch_state_, ch_feedback_;
+  static constexpr int kRing = 8192;
+  std::array<std::atomic<double>, kRing> sent_s_{};
+  std::atomic<int64_t> last_echo_{0};
+  bus::LatencyHistogram hist_;           // written by whoever receives feedback (one thread at a time)
+  std::atomic<int64_t> readings_{0}, feedbacks_{0};
+  std::atomic<double> last_force_n_{0}, max_force_n_{0}, feedback_time_s_{-1};
+};
+
+}  // namespace haptree
