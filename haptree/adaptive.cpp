@@ -159,6 +159,56 @@ double metric_at(const Model& m, const Data& d, const AdaptiveData& ad, int node
   return f.dot(Psi * f) + f.dot(p) + ad.eta[node];
 }
 
+}  // namespace
+
+// Impulsive lock of the inactive joints (needs the region's frontier caches and a full
+// forward_kinematics in `d`). Locking joints suddenly applies constraint impulses only, so the
+// active joints keep their generalized momentum pₐ = (H q̇)ₐ and take q̇ₐ' = Hₐₐ⁻¹ pₐ, q̇ᵢ' = 0:
+// the kinetic energy can only decrease (simply zeroing q̇ᵢ can *increase* it, e.g. when a child
+// counter-rotates against its parent). pₐ comes from composite body momenta in one O(n) sweep;
+// Hₐₐ⁻¹ pₐ is the hybrid pass itself with τ = p, no velocities, no forces and no gravity —
+// composite frontier nodes, so no difference-formula cancellation (§14.2).
+void lock_velocities(const Model& m, Data& d, State& st, AdaptiveData& ad) {
+  bool any = false;
+  std::vector<char> joint_active(m.nbodies, 0);
+  for (int J : ad.active_joints) joint_active[J] = 1;
+  for (int k = 1; k < m.nbodies && !any; ++k)
+    any = !joint_active[k] && m.v_num[k] > 0 && !st.qd.segment(m.v_adr[k], m.v_num[k]).isZero(0);
+  if (!any) return;
+  body_dynamics_terms(m, d, st);   // I_k, v_k with every joint's q̇
+  std::vector<Vec6> h(m.nbodies, Vec6::Zero());   // subtree momentum at r_k (a force-like vector)
+  for (int k = m.nbodies - 1; k >= 1; --k) {
+    h[k] += d.I[k] * d.v[k];
+    if (m.parent[k] > 0) h[m.parent[k]] += shift_force(h[k], -d.d[k]);
+  }
+  State impulse(m);
+  impulse.q = st.q;
+  for (int J : ad.active_joints) {
+    const int a = m.v_adr[J];
+    switch (m.joint_type[J]) {
+      case JointType::kRevolute:
+      case JointType::kPrismatic: impulse.tau(a) = d.S[J].dot(h[J]); break;
+      case JointType::kSpherical: impulse.tau.segment<3>(a) = d.R[J].transpose() * h[J].head<3>(); break;
+      case JointType::kFree:
+        impulse.tau.segment<3>(a) = d.R[J].transpose() * h[J].head<3>();
+        impulse.tau.segment<3>(a + 3) = d.R[J].transpose() * h[J].tail<3>();
+        break;
+      case JointType::kFixed: break;
+    }
+  }
+  ad.gravity_scale = 0;
+  adaptive_forward_dynamics(m, d, impulse, ad);
+  ad.gravity_scale = 1;
+  for (int k = 1; k < m.nbodies; ++k) {
+    const int a = m.v_adr[k], n = m.v_num[k];
+    if (joint_active[k]) st.qd.segment(a, n) = d.qdd.segment(a, n);
+    else st.qd.segment(a, n).setZero();
+  }
+  d.qdd.setZero();
+}
+
+namespace {
+
 // Frontier caches from a full forward_kinematics in `d`.
 void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   const auto& t = m.tree;
@@ -180,11 +230,6 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
     for (int ch : {t.P[node], t.Q[node]})
       if (t.is_leaf(ch) || !ad.active[ch]) ad.frontier.push_back(ch);
   std::sort(ad.active_joints.begin(), ad.active_joints.end());
-  // V1: inactive joints do not move.
-  std::vector<char> joint_active(m.nbodies, 0);
-  for (int J : ad.active_joints) joint_active[J] = 1;
-  for (int k = 1; k < m.nbodies; ++k)
-    if (!joint_active[k]) st.qd.segment(m.v_adr[k], m.v_num[k]).setZero();
   d.qdd.setZero();
   // Composite inertia and body placements relative to each frontier node's reference body.
   std::vector<int> stack;
@@ -218,6 +263,8 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
     ad.comp_com[F] = single ? m.com[ref] : com;
     ad.comp_Ic[F] = single ? m.inertia[ref] : Ic;
   }
+  // V1: inactive joints do not move; moving ones are locked impulsively.
+  lock_velocities(m, d, st, ad);
 }
 
 }  // namespace
@@ -286,11 +333,11 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   return ad.report.neglected_metric;
 }
 
-const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const State& st,
-                                                 AdaptiveData& ad) noexcept {
-  const auto& t = m.tree;
-  // 1. Reduced kinematics and velocities across active joints, in body order. The successor of
-  //    an active joint is always the reference (top) body of its frontier node.
+// Poses and velocities of the reference bodies and of every active joint's endpoints, from the
+// active joints only (the successor of an active joint is always the reference body of its
+// frontier node). O(|active|).
+static void reduced_kinematics(const Model& m, Data& d, const State& st,
+                               AdaptiveData& ad) noexcept {
   for (int F : ad.frontier) {
     if (ad.comp_ground[F]) {
       d.R[0].setIdentity();
@@ -312,6 +359,13 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
     const Vec6 vp = shift_motion(ad.ref_velocity[Fp], lp);
     ad.ref_velocity[ad.frontier_of_body[J]] = joint_motion_terms(m, d, J, st.qd, vp);
   }
+}
+
+const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const State& st,
+                                                 AdaptiveData& ad) noexcept {
+  const auto& t = m.tree;
+  // 1. Reduced kinematics and velocities across active joints, in body order.
+  reduced_kinematics(m, d, st, ad);
   // 2. External loads into the frontier nodes, then composite coefficients (§6.2).
   for (int F : ad.frontier) {
     const int ref = ad.ref_body[F];
@@ -323,7 +377,7 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
       const Mat3 Ic = R * ad.comp_Ic[F] * R.transpose();
       d.I[ref] = spatial_inertia(M, cw, Ic);
       d.Iinv[ref] = spatial_inertia_inverse(M, cw, Ic);
-      d.f_total[ref] = gravity_force(M, cw, m.gravity);
+      d.f_total[ref] = gravity_force(M, cw, ad.gravity_scale * m.gravity);
     }
   }
   auto add_load = [&](int k) {
@@ -403,6 +457,8 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
     st.qd.segment(a, n) += dt * d.qdd.segment(a, n);
     integrate_joint(m, J, st.q, st.qd, dt);
   }
+  // Poses and velocities for the new q, q̇, so update_all_body_poses and snapshots are current.
+  reduced_kinematics(m, d, st, ad);
   st.t += dt;
   return ad.report;
 }

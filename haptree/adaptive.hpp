@@ -8,9 +8,11 @@
 // Velocity policy (§10.3, model V1): inactive joints have q̇ = 0. A frontier node is then one true
 // rigid body, its composite inertia and internal geometry are constant while it stays rigid (cached
 // in its reference body's frame and only rotated on use), and nothing inside it is ever revisited.
-// The price: a joint that is deactivated while moving loses its kinetic energy (an energy sink,
-// measured by tools/adaptive_sweep). Selection keeps joints whose acceleration metric is large, so
-// fast joints tend to stay active.
+// Joints that are deactivated while moving are locked *impulsively* (lock_velocities): the active
+// joints take the velocities that momentum conservation under the new constraints gives, so the
+// kinetic energy can only drop (by the energy of the removed relative motion — an energy sink,
+// measured by tools/adaptive_sweep). Simply zeroing q̇ of the locked joints was measured to *add*
+// energy (a counter-rotating child sped up), which is why the projection is worth its O(n) cost.
 //
 // Selection (§9, exact periodic policy §10.4-A): every `reselect_every` steps — or when ε or the
 // budget changes — a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
@@ -69,6 +71,7 @@ struct AdaptiveData {
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;
+  double gravity_scale = 1;            // 0 inside lock_velocities (impulse balance)
   AdaptiveOptions last_options;
   int steps_since_selection = 1 << 30;
   AdaptiveReport report;
@@ -90,6 +93,11 @@ double select_active_region(const Model& model, Data& data, State& state, Adapti
 // Zeroes q̇ of inactive joints and builds the frontier caches. O(n).
 void set_active_region(const Model& model, Data& data, State& state, AdaptiveData& ad,
                        const std::vector<char>& active_internal_nodes);
+
+// Impulsive lock of the joints outside the region in `ad` (called by the region setters): inactive
+// joints get q̇ = 0, active ones q̇ₐ + Hₐₐ⁻¹Hₐᵢq̇ᵢ (momentum kept, kinetic energy non-increasing).
+// Needs the region's caches and forward_kinematics in `data`. O(n).
+void lock_velocities(const Model& model, Data& data, State& state, AdaptiveData& ad);
 
 // Hybrid forward dynamics on the current active region: reduced kinematics, bottom-up over active
 // nodes with composite frontier nodes, top-down. q̈ = 0 for inactive joints. No allocation.
