@@ -44,6 +44,7 @@ int main(int argc, char** argv) {
     haptree::bus::HandlerThread handler(bus);
     haptree::Coupler coupler(bus, o);
     const int rc = coupler.run(g_stop);
+    handler.stop();   // no callback may run into a destroyed Coupler
     spdlog::info("coupler: {} iterations, {} snapshots, {} rejected", coupler.counters().iterations.load(),
                  coupler.counters().snapshots_accepted.load(), coupler.rejected_messages());
     return rc;

@@ -46,6 +46,7 @@ int main(int argc, char** argv) {
     haptree::bus::HandlerThread handler(bus);
     haptree::DeviceBridge bridge(bus, o);
     const int rc = bridge.run(g_stop);
+    handler.stop();
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
                  "p99 {:.1f} us ({} samples)",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),

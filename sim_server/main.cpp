@@ -39,6 +39,7 @@ int main(int argc, char** argv) {
     haptree::bus::HandlerThread handler(bus);
     haptree::SimServer server(bus, o);
     const int rc = server.run(g_stop);
+    handler.stop();
     spdlog::info("sim_server: {} steps, {} snapshots", server.steps_done(), server.snapshots_published());
     return rc;
   } catch (const std::exception& e) {
