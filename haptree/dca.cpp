@@ -205,9 +205,9 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
   for (int j = 0; j < NC; ++j) {
     double s = A(j, j);
     for (int k = 0; k < j; ++k) s -= L[j][k] * L[j][k];
-    if (!(s > tol)) {
+    if (!(s > tol)) {   // reported; a tiny positive pivot is kept, only s <= 0 is replaced
       ok = false;
-      s = tol > 0 ? tol : 1e-300;
+      if (!(s > 0)) s = tol > 0 ? tol : 1e-300;
     }
     L[j][j] = std::sqrt(s);
     const double inv = 1.0 / L[j][j];
