@@ -5,26 +5,11 @@
 #include <cstdlib>
 #include <new>
 
+#include "haptree/adaptive.hpp"
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
 
-static std::atomic<long> g_allocs{0};
-void* operator new(std::size_t n) {
-  ++g_allocs;
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) { return operator new(n); }
-void* operator new(std::size_t n, std::align_val_t al) {
-  ++g_allocs;
-  if (void* p = std::aligned_alloc(static_cast<std::size_t>(al), (n + static_cast<std::size_t>(al) - 1) & ~(static_cast<std::size_t>(al) - 1))) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::align_val_t) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+#include "tests/support/count_allocations.hpp"
 
 namespace haptree {
 namespace {
@@ -40,13 +25,28 @@ TEST(Allocation, ForwardDynamicsAndIntegrationAllocateNothing) {
     State st(*model);
     Data d(*model);
     forward_dynamics(*model, d, st);   // warm-up
-    const long before = g_allocs.load();
+    const long before = haptree::testing::allocation_count();
     for (int i = 0; i < 5; ++i) {
       forward_dynamics(*model, d, st);
       integrate(*model, st.q, st.qd, d.qdd, 1e-3);
     }
-    EXPECT_EQ(g_allocs.load() - before, 0) << scene;
+    EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene;
   }
+}
+
+TEST(Allocation, HybridStepWithoutReselectionAllocatesNothing) {
+  auto model = make_protein_like({});
+  State st(*model);
+  Data d(*model);
+  AdaptiveData ad(*model);
+  AdaptiveOptions opt;
+  opt.budget = 48;
+  opt.reselect_every = 1000;
+  adaptive_step(*model, d, st, ad, opt, 1e-3);   // selection (O(n), allowed to allocate)
+  const long before = haptree::testing::allocation_count();
+  for (int i = 0; i < 20; ++i) adaptive_step(*model, d, st, ad, opt, 1e-3);
+  EXPECT_EQ(haptree::testing::allocation_count() - before, 0);
+  EXPECT_FALSE(ad.report.reselected);
 }
 
 }  // namespace

@@ -16,31 +16,8 @@
 #include "haptree/scenes.hpp"
 #include "tests/support/oracle.hpp"
 
-// Count every operator new in this binary (allocation assertions below). GCC 12 flags free() in a
-// replaced operator delete as mismatched; the pairing is ours (malloc/aligned_alloc ↔ free).
-#pragma GCC diagnostic ignored "-Wmismatched-new-delete"
-static std::atomic<long> g_allocs{0};
-void* operator new(std::size_t n) {
-  ++g_allocs;
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) { return operator new(n); }
-void* operator new(std::size_t n, std::align_val_t al) {
-  ++g_allocs;
-  const std::size_t a = static_cast<std::size_t>(al);
-  if (void* p = std::aligned_alloc(a, (n + a - 1) & ~(a - 1))) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n, std::align_val_t al) { return operator new(n, al); }
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
-void operator delete(void* p, std::align_val_t) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::align_val_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+#include "tests/support/count_allocations.hpp"
+
 
 namespace haptree {
 namespace {
@@ -442,11 +419,11 @@ TEST(Coupling, NoAllocationPerCallOrPerSnapshotOnceSized) {
     make_coupling_snapshot(*model, d, grabs, fu, 1, 0, snap);   // sizes the snapshot
     CouplingWorkspace ws(snap);
     std::vector<Vec6> feed(4);
-    const long before = g_allocs.load();
+    const long before = haptree::testing::allocation_count();
     for (int i = 0; i < 3; ++i) make_coupling_snapshot(*model, d, grabs, fu, 2 + i, 0, snap);
     for (int i = 0; i < 100; ++i)
       ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
-    EXPECT_EQ(g_allocs.load() - before, 0) << scene;
+    EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene;
   }
 }
 

@@ -10,25 +10,8 @@
 #include "haptree/dca.hpp"
 #include "haptree/molecule/scene.hpp"
 
-static std::atomic<long> g_allocs{0};
-void* operator new(std::size_t n) {
-  ++g_allocs;
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) { return operator new(n); }
-void* operator new(std::size_t n, std::align_val_t al) {
-  ++g_allocs;
-  const std::size_t a = static_cast<std::size_t>(al);
-  if (void* p = std::aligned_alloc(a, (n + a - 1) & ~(a - 1))) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
-void operator delete(void* p, std::align_val_t) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t, std::align_val_t) noexcept { std::free(p); }
+#include "tests/support/count_allocations.hpp"
+
 
 namespace haptree {
 namespace {
@@ -43,7 +26,7 @@ TEST(MoleculeAllocation, ForceFieldAndStepAllocateNothing) {
     for (int b = 0; b < m.nbodies; ++b) region[b] = b / 4;
     forward_kinematics(m, d, st.q);
     sc.compute(d, st.f_ext);   // warm-up
-    const long before = g_allocs.load();
+    const long before = haptree::testing::allocation_count();
     const int rebuilds0 = sc.force_field->neighbour_rebuilds();
     for (int i = 0; i < 6; ++i) {
       // Small torsion moves (no clashes) that still move far atoms beyond skin/2: list rebuilds.
@@ -57,7 +40,7 @@ TEST(MoleculeAllocation, ForceFieldAndStepAllocateNothing) {
       integrate(m, st.q, st.qd, d.qdd, 1e-5);
     }
     EXPECT_TRUE(st.q.allFinite()) << name;
-    EXPECT_EQ(g_allocs.load() - before, 0) << name;
+    EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << name;
     EXPECT_GT(sc.force_field->neighbour_rebuilds(), rebuilds0) << name;
   }
 }
