@@ -78,22 +78,28 @@ AssemblyTree build_assembly_tree(const std::vector<int>& parent) {
 
   // Handles, bottom-up (ids descending).
   const int nn = t.nnodes();
-  std::vector<std::vector<int>> hs(nn);
+  std::vector<std::vector<int>> hs(nn), hb(nn);
+  std::vector<std::vector<int>> kids(nb);
+  for (int c = 1; c < nb; ++c) kids[parent[c]].push_back(c);
   for (int node = nn - 1; node >= 0; --node) {
     if (t.P[node] < 0) {
       const int k = t.body[node];
-      if (k > 0) hs[node].push_back(k);
-      for (int c = k + 1; c < nb; ++c)
-        if (parent[c] == k) hs[node].push_back(c);
+      if (k > 0) { hs[node].push_back(k); hb[node].push_back(k); }
+      for (int c : kids[k]) { hs[node].push_back(c); hb[node].push_back(k); }
       continue;
     }
     const int J = t.joint[node];
-    const auto& hp = hs[t.P[node]];
-    const auto& hq = hs[t.Q[node]];
-    for (size_t i = 0; i < hp.size(); ++i)
-      if (hp[i] == J) t.slot_j[node] = static_cast<int>(i); else hs[node].push_back(hp[i]);
-    for (size_t i = 0; i < hq.size(); ++i)
-      if (hq[i] == J) t.slot_k[node] = static_cast<int>(i); else hs[node].push_back(hq[i]);
+    const int Pn = t.P[node], Qn = t.Q[node];
+    for (size_t i = 0; i < hs[Pn].size(); ++i) {
+      if (hs[Pn][i] == J) { t.slot_j[node] = static_cast<int>(i); continue; }
+      hs[node].push_back(hs[Pn][i]);
+      hb[node].push_back(hb[Pn][i]);
+    }
+    for (size_t i = 0; i < hs[Qn].size(); ++i) {
+      if (hs[Qn][i] == J) { t.slot_k[node] = static_cast<int>(i); continue; }
+      hs[node].push_back(hs[Qn][i]);
+      hb[node].push_back(hb[Qn][i]);
+    }
     if (t.slot_j[node] < 0 || t.slot_k[node] < 0)
       throw std::logic_error("build_assembly_tree: principal joint missing from a child's handles");
   }
@@ -103,6 +109,7 @@ AssemblyTree build_assembly_tree(const std::vector<int>& parent) {
     t.handle_adr[node] = static_cast<int>(t.handles.size());
     t.handle_num[node] = static_cast<int>(hs[node].size());
     t.handles.insert(t.handles.end(), hs[node].begin(), hs[node].end());
+    t.handle_body.insert(t.handle_body.end(), hb[node].begin(), hb[node].end());
     t.max_handles = std::max(t.max_handles, t.handle_num[node]);
     t.max_depth = std::max(t.max_depth, t.depth[node]);
   }

@@ -18,6 +18,7 @@ struct AssemblyTree {
   std::vector<int> handle_adr;   // (nnodes) CSR offsets into `handles`
   std::vector<int> handle_num;   // (nnodes)
   std::vector<int> handles;      // joint ids; order P' then Q' (§5.3)
+  std::vector<int> handle_body;  // parallel to `handles`: the node's body the handle joint is attached to
   std::vector<int> leaf_of_body;     // (nbodies)
   std::vector<int> owner_of_joint;   // (nbodies) internal node whose principal joint is J; -1 for 0
   int max_depth = 0;
@@ -27,6 +28,8 @@ struct AssemblyTree {
   bool is_leaf(int node) const { return P[node] < 0; }
   int nhandles(int node) const { return handle_num[node]; }
   int handle(int node, int slot) const { return handles[handle_adr[node] + slot]; }
+  // The body inside `node` that handle `slot` attaches to: the joint's successor or predecessor.
+  int attached_body(int node, int slot) const { return handle_body[handle_adr[node] + slot]; }
   int sibling(int node) const {
     const int u = up[node];
     return u < 0 ? -1 : (P[u] == node ? Q[u] : P[u]);

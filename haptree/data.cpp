@@ -1,5 +1,7 @@
 #include "haptree/data.hpp"
 
+#include <string>
+
 namespace haptree {
 
 State::State(const Model& model)
@@ -35,6 +37,18 @@ Data::Data(const Model& model) {
     vec_adr[node] = vec;
     vec += 6 * h;
   }
+  // A body with many children keeps many handles open on its way up the assembly: Φ storage grows
+  // as O(d^3). Refuse clearly instead of failing inside the allocator.
+  if (phi > (std::int64_t{1} << 29)) {   // 4 GiB of doubles
+    int hub = 0;
+    for (int k = 0; k < nb; ++k)
+      if (model.children[k].size() > model.children[hub].size()) hub = k;
+    throw ModelError("body '" + model.body_name[hub] + "' has " +
+                     std::to_string(model.children[hub].size()) + " children: the assembly would "
+                     "need " + std::to_string(phi * 8 >> 20) + " MiB of coefficients; build the "
+                     "model with BuildOptions::max_children (e.g. 4) to split it (exact, "
+                     "ALGORITHMS §4.4)");
+  }
   Phi_buf.assign(phi, 0.0);
   b_buf.assign(vec, 0.0);
   f_buf.assign(vec, 0.0);
@@ -42,6 +56,17 @@ Data::Data(const Model& model) {
   beta.assign(nn, Vec6::Zero());
   taut.assign(nn, Vec6::Zero());
   qdd = Eigen::VectorXd::Zero(model.nv);
+  const int nc = model.ncluster_nodes;
+  if (nc > 0) cluster_offset.assign(nb, Vec3::Zero());
+  cM.assign(nc, Mat6::Zero());
+  cMinv.assign(nc, Mat6::Zero());
+  cIA.assign(nc, Mat6::Zero());
+  cp.assign(nc, Vec6::Zero());
+  cpA.assign(nc, Vec6::Zero());
+  cqa.assign(nc, Vec6::Zero());
+  ca.assign(nc, Vec6::Zero());
+  cb.assign(nc, Vec6::Zero());
+  cluster_live.assign(nn, 0);
 }
 
 }  // namespace haptree

@@ -59,6 +59,18 @@ struct Data {
   std::vector<Vec6> beta;              // (nnodes)
   std::vector<Vec6> taut;              // (nnodes) (1 - WΦ̂) D τ, kept so β splits cleanly
 
+  // Inertia form of cluster nodes (Model::cluster_index; full DCA only): the node's articulated
+  // inertia M and bias force p at its cluster's root point, a_o = cMinv Σ X_xᵀ f_x + cb with
+  // cMinv = M⁻¹, cb = M⁻¹p (or their pinned versions when the node holds the cluster's ground
+  // joint); for projection nodes also the one-handle side's articulated inertia IA and bias pA.
+  std::vector<Vec3> cluster_offset;    // (nbodies if clusters) r_k − r_{cluster_root[k]}
+  std::vector<Mat6> cM, cMinv, cIA;    // (ncluster_nodes)
+  std::vector<Vec6> cp, cpA;           // (ncluster_nodes)
+  std::vector<Vec6> cqa;               // (ncluster_nodes) U⁻¹(στ + Sᵀ pA), first nJ entries
+  std::vector<Vec6> ca;                // (ncluster_nodes) acceleration of the cluster root point
+  std::vector<Vec6> cb;                // (ncluster_nodes) a_o with no handle forces (cMinv = ∂a_o/∂F_o)
+  std::vector<std::uint8_t> cluster_live;   // (nnodes) assembled in inertia form in this pass
+
   Eigen::VectorXd qdd;          // (nv) output of forward_dynamics
   Diagnostics diag;
 

@@ -230,11 +230,14 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
 
 }  // namespace
 
-void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+namespace {
+
+// The joint part of §5.2: W, τ̃ and β of `node` from its children's Φ and b.
+void assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
   const auto& t = m.tree;
   const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
   const int j = t.slot_j[node], k = t.slot_k[node];
-  const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q];
   const Mat6 Phat = d.Phi(P, hP, j, j) + d.Phi(Q, hQ, k, k);
 
   JointMat S, T, D;
@@ -261,8 +264,20 @@ void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau)
   } else {
     taut.setZero();
   }
-  Vec6& beta = d.beta[node];
-  beta = W * (d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
+  d.beta[node] = W * (d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
+}
+
+}  // namespace
+
+void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  const auto& t = m.tree;
+  d.cluster_live[node] = 0;
+  assemble_joint(m, d, node, tau);
+  const int P = t.P[node], Q = t.Q[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+  const Mat6& W = d.W[node];
+  const Vec6& beta = d.beta[node];
 
   // Surviving handles: C slots 0..hP-2 come from P' in order, then Q'.
   int ci = 0;
@@ -307,8 +322,255 @@ void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau)
   }
 }
 
+namespace {
+
+// ---- Inertia form of cluster nodes (Model::cluster_case) -------------------------------------
+// A node whose handles all attach to one rigid cluster is described by its articulated inertia M
+// and bias force p at the cluster's root point o: a_o = M⁻¹(Σ_x X_xᵀ f_x + p), X_x the motion
+// shift from o to handle x. Joining two such nodes across a fixed joint adds M and p; joining a
+// one-handle side across a moving joint adds its ABA projection. No difference of large mobilities
+// is formed, so light pieces of a split hub do not cancel (ALGORITHMS §4.4, §16.4).
+
+using JointVec = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 6, 1>;
+using JointSq = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
+
+// Offset of handle `slot` of `node` from the node's cluster root point.
+inline Vec3 handle_offset(const Model& m, const Data& d, int node, int slot) {
+  const int J = m.tree.handle(node, slot), a = m.tree.attached_body(node, slot);
+  return a == J ? d.cluster_offset[J] : Vec3(d.cluster_offset[a] + d.d[J]);
+}
+
+// Inertia I given at point o + delta, moved to o: Xᵀ I X with X = M(o → o + delta).
+inline Mat6 inertia_at_origin(const Mat6& I, const Vec3& delta) {
+  const Mat6 X = motion_shift_matrix(delta);
+  return X.transpose() * I * X;
+}
+
+// Inertia form (M, p) of a leaf or an inertia-form node at its cluster root point.
+inline void inertia_form(const Model& m, const Data& d, int node, Mat6& M, Vec6& p) {
+  if (m.tree.is_leaf(node)) {
+    const int k = m.tree.body[node];
+    const Vec3& e = d.cluster_offset[k];
+    M = inertia_at_origin(d.I[k], e);
+    p = shift_force(d.p_bias[k], -e);
+  } else {
+    const int c = m.cluster_index[node];
+    M = d.cM[c];
+    p = d.cp[c];
+  }
+}
+
+// Articulated inertia IA and bias pA at the handle point r_J of a one-handle node O.
+void one_handle_inertia(const Model& m, const Data& d, int O, int J, Mat6& IA, Vec6& pA) {
+  const auto& t = m.tree;
+  if (t.is_leaf(O)) {
+    const int b = t.body[O];
+    if (b == J) {
+      IA = d.I[J];
+      pA = d.p_bias[J];
+    } else {   // O is J's predecessor: r_J = r_b + d_J
+      IA = inertia_at_origin(d.I[b], -d.d[J]);
+      pA = shift_force(d.p_bias[b], d.d[J]);
+    }
+  } else if (d.cluster_live[O]) {
+    const int c = m.cluster_index[O];
+    const Vec3 delta = handle_offset(m, d, O, 0);
+    IA = inertia_at_origin(d.cM[c], -delta);
+    pA = shift_force(d.cp[c], delta);
+  } else {   // mobility form: a = Φ f + b  =>  f = Φ⁻¹ a − Φ⁻¹ b
+    const Eigen::LLT<Mat6> llt(Mat6(d.Phi(O, 1, 0, 0)));
+    IA = llt.solve(Mat6::Identity());
+    IA = 0.5 * (IA + IA.transpose());
+    pA = IA * d.b(O, 0);
+  }
+}
+
+void assemble_inertia_form(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) {
+  const auto& t = m.tree;
+  const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+  const int c = m.cluster_index[node];
+  Mat6 M;
+  Vec6 p;
+  if (m.cluster_case[node] == Model::ClusterCase::kGroundPin) {
+    inertia_form(m, d, Q, M, p);
+  } else if (m.cluster_case[node] == Model::ClusterCase::kFixedMerge) {
+    Mat6 MP, MQ;
+    Vec6 pP, pQ;
+    inertia_form(m, d, P, MP, pP);
+    inertia_form(m, d, Q, MQ, pQ);
+    M = MP + MQ;
+    p = pP + pQ;
+  } else {
+    const bool o_is_q = m.cluster_case[node] == Model::ClusterCase::kProjectQ;
+    const int O = o_is_q ? Q : P, In = o_is_q ? P : Q;
+    const double sigma = o_is_q ? 1.0 : -1.0;   // a_O = a_K + σ(S q̈ + c)
+    Mat6& IA = d.cIA[c];
+    Vec6& pA = d.cpA[c];
+    one_handle_inertia(m, d, O, J, IA, pA);
+    JointMat S, T, D;
+    joint_subspaces(m, d, J, S, T, D);
+    const int nJ = static_cast<int>(S.cols());
+    Mat6 Ia = IA;
+    Vec6 pa = pA;
+    if (nJ > 0) {
+      const JointMat IS = IA * S;
+      const JointSq U = S.transpose() * IS;
+      const Eigen::LLT<JointSq> llt(U);
+      const JointVec rhs = S.transpose() * pA + sigma * tau.segment(m.v_adr[J], nJ);
+      const JointVec u = llt.solve(rhs);
+      d.cqa[c].head(nJ) = u;
+      Ia -= IS * llt.solve(Eigen::Matrix<double, Eigen::Dynamic, 6, 0, 6, 6>(IS.transpose()));
+      pa -= IS * u;
+    }
+    pa -= sigma * (Ia * d.c[J]);
+    Mat6 MI;
+    Vec6 pI;
+    inertia_form(m, d, In, MI, pI);
+    const Vec3 delta = handle_offset(m, d, In, o_is_q ? t.slot_j[node] : t.slot_k[node]);
+    M = MI + inertia_at_origin(Ia, delta);
+    p = pI + shift_force(pa, -delta);
+  }
+  M = 0.5 * (M + M.transpose());
+  d.cM[c] = M;
+  d.cp[c] = p;
+  Mat6 Minv;
+  Vec6 a0;
+  const int pin = m.cluster_pin[node];
+  if (pin < 0) {
+    const Eigen::LLT<Mat6> llt(M);
+    Minv = llt.solve(Mat6::Identity());
+    a0 = llt.solve(p);
+  } else {
+    // The pin joint enters the cluster root (offset 0): a_o = S q̈0 + c0 with
+    // q̈0 = U⁻¹(τ0 + Sᵀ(F_o + p − M c0)), U = SᵀMS.
+    JointMat S, T, D;
+    joint_subspaces(m, d, pin, S, T, D);
+    const int n0 = static_cast<int>(S.cols());
+    const Vec6& c0 = d.c[pin];
+    Minv.setZero();
+    a0 = c0;
+    if (n0 > 0) {
+      const JointMat MS = M * S;
+      const JointSq U = S.transpose() * MS;
+      const Eigen::LLT<JointSq> llt(U);
+      Minv = S * llt.solve(Eigen::Matrix<double, Eigen::Dynamic, 6, 0, 6, 6>(S.transpose()));
+      const JointVec r = tau.segment(m.v_adr[pin], n0) + S.transpose() * (p - M * c0);
+      a0.noalias() += S * llt.solve(r);
+    }
+  }
+  Minv = 0.5 * (Minv + Minv.transpose());
+  d.cMinv[c] = Minv;
+  d.cb[c] = a0;
+  // Mobility form for consumers that read Φ and b (parents in mobility form, coupling, metric).
+  const int h = t.handle_num[node];
+  for (int x = 0; x < h; ++x) {
+    const Vec3 dx = handle_offset(m, d, node, x);
+    const Mat6 XM = motion_shift_matrix(dx) * Minv;
+    for (int y = x; y < h; ++y) {
+      const Mat6 blk = XM * motion_shift_matrix(handle_offset(m, d, node, y)).transpose();
+      d.Phi(node, h, x, y) = blk;
+      if (y != x) d.Phi(node, h, y, x) = blk.transpose();
+    }
+    d.b(node, x) = shift_motion(a0, dx);
+  }
+  d.cluster_live[node] = 1;
+}
+
+// Back-substitution in inertia form: the cluster's acceleration comes from the parent when the
+// parent is in inertia form (never recomputed from large constraint forces on a light piece).
+void top_down_inertia_form(const Model& m, Data& d, int node) {
+  const auto& t = m.tree;
+  const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q];
+  const int c = m.cluster_index[node];
+  const int up = t.up[node];
+  Vec6 a;
+  if (up >= 0 && d.cluster_live[up]) {
+    a = d.ca[c];
+  } else {
+    Vec6 F = Vec6::Zero();
+    for (int x = 0; x < t.handle_num[node]; ++x)
+      F += shift_force(d.f(node, x), -handle_offset(m, d, node, x));
+    a = d.cMinv[c] * F + d.cb[c];
+    d.ca[c] = a;
+  }
+  int ci = 0;
+  for (int i = 0; i < hP; ++i)
+    if (i != j) d.f(P, i) = d.f(node, ci++);
+  for (int l = 0; l < hQ; ++l)
+    if (l != k) d.f(Q, l) = d.f(node, ci++);
+  auto pass_down = [&](int child, const Vec6& ac) {
+    if (!t.is_leaf(child) && d.cluster_live[child]) d.ca[m.cluster_index[child]] = ac;
+  };
+  Vec6 fc;
+  if (m.cluster_case[node] == Model::ClusterCase::kGroundPin) {
+    // J enters the cluster root (offset 0): q̈ = Sᵀ(a − c_J); the ground's force from Q's equation.
+    Mat6 MQ;
+    Vec6 pQ;
+    inertia_form(m, d, Q, MQ, pQ);
+    Vec6 g = MQ * a - pQ;
+    for (int x = 0; x < hQ; ++x)
+      if (x != k) g -= shift_force(d.f(Q, x), -handle_offset(m, d, Q, x));
+    fc = shift_force(g, handle_offset(m, d, Q, k));
+    const int nJ = m.v_num[J];
+    if (nJ > 0 && d.kind[node] == NodeKind::kActive) {
+      JointMat S, T, D;
+      joint_subspaces(m, d, J, S, T, D);
+      d.qdd.segment(m.v_adr[J], nJ) = S.transpose() * (a - d.c[J]);
+    }
+    pass_down(Q, a);
+  } else if (m.cluster_case[node] == Model::ClusterCase::kFixedMerge) {
+    // Force through J from the lighter side's equation M_L a = Σ X_xᵀ f_x + p_L.
+    Mat6 MP, MQ;
+    Vec6 pP, pQ;
+    inertia_form(m, d, P, MP, pP);
+    inertia_form(m, d, Q, MQ, pQ);
+    const bool use_q = MQ.trace() <= MP.trace();
+    const int L = use_q ? Q : P, sJ = use_q ? k : j;
+    Vec6 g = (use_q ? MQ : MP) * a - (use_q ? pQ : pP);
+    for (int x = 0; x < t.handle_num[L]; ++x)
+      if (x != sJ) g -= shift_force(d.f(L, x), -handle_offset(m, d, L, x));
+    const Vec6 fL = shift_force(g, handle_offset(m, d, L, sJ));
+    fc = use_q ? fL : Vec6(-fL);
+    pass_down(P, a);
+    pass_down(Q, a);
+  } else {
+    const bool o_is_q = m.cluster_case[node] == Model::ClusterCase::kProjectQ;
+    const int O = o_is_q ? Q : P, In = o_is_q ? P : Q;
+    const double sigma = o_is_q ? 1.0 : -1.0;
+    const Mat6& IA = d.cIA[c];
+    const Vec3 delta = handle_offset(m, d, In, o_is_q ? j : k);
+    const Vec6 aK = shift_motion(a, delta);
+    JointMat S, T, D;
+    joint_subspaces(m, d, J, S, T, D);
+    const int nJ = static_cast<int>(S.cols());
+    Vec6 aO = aK + sigma * d.c[J];
+    if (nJ > 0) {
+      const JointMat IS = IA * S;
+      const JointSq U = S.transpose() * IS;
+      const JointVec qdd =
+          sigma * (d.cqa[c].head(nJ) - Eigen::LLT<JointSq>(U).solve(JointVec(IS.transpose() * aO)));
+      aO.noalias() += sigma * (S * qdd);
+      if (d.kind[node] == NodeKind::kActive) d.qdd.segment(m.v_adr[J], nJ) = qdd;
+    }
+    fc = sigma * (IA * aO - d.cpA[c]);
+    pass_down(In, a);
+    if (!t.is_leaf(O) && d.cluster_live[O])
+      d.ca[m.cluster_index[O]] = shift_motion(aO, -handle_offset(m, d, O, 0));
+  }
+  d.f(P, j) = -fc;
+  d.f(Q, k) = fc;
+}
+
+}  // namespace
+
 void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
   const auto& t = m.tree;
+  if (d.cluster_live[node]) {
+    top_down_inertia_form(m, d, node);
+    return;
+  }
   const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
   const int j = t.slot_j[node], k = t.slot_k[node];
   const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
@@ -351,10 +613,22 @@ void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
 
 void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
   const auto& t = m.tree;
+  if (m.ncluster_nodes > 0)
+    for (int k = 1; k < m.nbodies; ++k)
+      d.cluster_offset[k] =
+          m.cluster_root[k] == k ? Vec3::Zero() : Vec3(d.cluster_offset[m.parent[k]] + d.d[k]);
   std::int64_t count = 0;
   for (int node = t.nnodes() - 1; node >= 0; --node) {
-    if (t.is_leaf(node)) dca_leaf(m, d, node);
-    else dca_assemble(m, d, node, st.tau);
+    if (t.is_leaf(node)) {
+      dca_leaf(m, d, node);
+    } else {
+      if (m.cluster_index[node] >= 0) {
+        assemble_joint(m, d, node, st.tau);   // W, β for coupling and metric readers
+        assemble_inertia_form(m, d, node, st.tau);
+      } else {
+        dca_assemble(m, d, node, st.tau);
+      }
+    }
     ++count;
   }
   d.diag.nodes_bottom_up = count;

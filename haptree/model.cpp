@@ -105,6 +105,69 @@ struct Hasher {
   void s(const std::string& v) { i(static_cast<long long>(v.size())); bytes(v.data(), v.size()); }
 };
 
+// Marks the internal nodes that can be assembled in inertia form (Model::cluster_case). A node
+// qualifies when all its handles attach to one multi-body fixed-joint cluster and either
+//  - its principal joint is fixed and both children are in inertia form on that cluster (merge:
+//    M_C = M_P + M_Q), or
+//  - one child has a single handle (the principal joint) and the other is in inertia form on the
+//    cluster (projection of the one-handle side's articulated inertia across the joint, as in ABA);
+//  - one child is the ground and the principal joint enters the cluster's root body: the node keeps
+//    the cluster's M and p and is "pinned" by that joint (its mobility is S U⁻¹ Sᵀ, U = SᵀMS).
+// Leaves are always in inertia form (their body's inertia). Bodies fixed to the ground stay out.
+void classify_clusters(Model& m) {
+  const auto& t = m.tree;
+  const int nn = t.nnodes();
+  m.cluster_root.assign(m.nbodies, 0);
+  std::vector<int> cluster_size(m.nbodies, 0);
+  for (int k = 1; k < m.nbodies; ++k) {
+    const int p = m.parent[k];
+    m.cluster_root[k] = (m.joint_type[k] == JointType::kFixed && p > 0) ? m.cluster_root[p] : k;
+    ++cluster_size[m.cluster_root[k]];
+  }
+  m.cluster_index.assign(nn, -1);
+  m.cluster_case.assign(nn, Model::ClusterCase::kNone);
+  m.cluster_pin.assign(nn, -1);
+  m.ncluster_nodes = 0;
+  std::vector<int> root_of_node(nn, -1);   // cluster of a node in inertia form (leaves included)
+  std::vector<char> grounded(nn, 0);       // contains the ground: no finite articulated inertia
+  for (int node = nn - 1; node >= 0; --node) {
+    if (t.is_leaf(node)) {
+      const int k = t.body[node];
+      if (k > 0) root_of_node[node] = m.cluster_root[k];
+      grounded[node] = k == 0;
+      continue;
+    }
+    grounded[node] = grounded[t.P[node]] || grounded[t.Q[node]];
+    const int h = t.handle_num[node];
+    if (h == 0) continue;
+    const int R = m.cluster_root[t.attached_body(node, 0)];
+    bool same = R > 0 && cluster_size[R] >= 2;
+    for (int x = 1; x < h && same; ++x) same = m.cluster_root[t.attached_body(node, x)] == R;
+    if (!same) continue;
+    const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+    Model::ClusterCase c = Model::ClusterCase::kNone;
+    int pin = -1;
+    if (m.joint_type[J] == JointType::kFixed) {
+      if (root_of_node[P] == R && root_of_node[Q] == R) c = Model::ClusterCase::kFixedMerge;
+      pin = std::max(m.cluster_pin[P], m.cluster_pin[Q]);
+    } else if (t.is_leaf(P) && t.body[P] == 0 && J == R && root_of_node[Q] == R) {
+      c = Model::ClusterCase::kGroundPin;
+      pin = J;
+    } else if (t.handle_num[P] == 1 && !grounded[P] && root_of_node[Q] == R) {
+      c = Model::ClusterCase::kProjectP;
+    } else if (t.handle_num[Q] == 1 && !grounded[Q] && root_of_node[P] == R) {
+      c = Model::ClusterCase::kProjectQ;
+    }
+    if (c == Model::ClusterCase::kNone) continue;
+    if (c == Model::ClusterCase::kProjectP) pin = m.cluster_pin[Q];
+    if (c == Model::ClusterCase::kProjectQ) pin = m.cluster_pin[P];
+    m.cluster_case[node] = c;
+    m.cluster_pin[node] = pin;
+    m.cluster_index[node] = m.ncluster_nodes++;
+    root_of_node[node] = R;
+  }
+}
+
 }  // namespace
 
 std::shared_ptr<const Model> ModelBuilder::build(const BuildOptions& options) const {
@@ -180,6 +243,7 @@ std::shared_ptr<const Model> ModelBuilder::build(const BuildOptions& options) co
     if (!names.insert(m.joint_name[k]).second)
       throw ModelError("duplicate joint name '" + m.joint_name[k] + "'");
   m.tree = build_assembly_tree(m.parent);
+  classify_clusters(m);
 
   Hasher h;
   h.i(m.nbodies);

@@ -44,6 +44,16 @@ struct Model {
   std::vector<std::vector<int>> children;           // (nbodies)
   Vec3 gravity{0, 0, -9.81};
   AssemblyTree tree;                                // derived, constant
+  // Rigid clusters: bodies joined by fixed joints (e.g. the pieces of a degree-reduced hub). An
+  // internal assembly node whose handles all attach to one cluster is assembled in inertia form
+  // (ABA-style sums of articulated inertias) instead of by the mobility difference formula, which
+  // cancels when a light piece is joined rigidly to a heavy assembly (ALGORITHMS §4.4).
+  enum class ClusterCase : std::uint8_t { kNone, kFixedMerge, kProjectP, kProjectQ, kGroundPin };
+  std::vector<int> cluster_root;                    // (nbodies) top body of k's fixed-joint cluster
+  std::vector<int> cluster_index;                   // (nnodes) slot in Data's cluster arrays, or -1
+  std::vector<ClusterCase> cluster_case;            // (nnodes) how the node is assembled in inertia form
+  std::vector<int> cluster_pin;                     // (nnodes) joint pinning the cluster to the ground, or -1
+  int ncluster_nodes = 0;
   std::uint64_t fingerprint = 0;                    // hash of everything above (canonical order)
 
   int joint_index(const std::string& name) const;   // -1 if absent

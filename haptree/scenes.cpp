@@ -127,9 +127,10 @@ std::shared_ptr<const Model> make_star(const SceneOptions& o) {
   const int hub = add_link(b, g, 0, 0, o.free_root ? JointType::kFree : JointType::kSpherical,
                            o.base_offset, "hub");
   for (int k = 2; k <= o.n; ++k) {
+    const JointType t = o.mixed_joints ? pick_type(g) : JointType::kRevolute;
     const auto l = g.link(k);
-    b.add_body("leaf" + std::to_string(k), hub, JointType::kRevolute, 0.1 * g.unit(), l.rot,
-               l.axis, l.m, l.com, l.Ic);
+    b.add_body("leaf" + std::to_string(k), hub, t, 0.1 * g.unit(), l.rot, l.axis, l.m, l.com,
+               l.Ic);
   }
   return b.build(o.build);
 }

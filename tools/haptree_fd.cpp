@@ -74,7 +74,9 @@ int main(int argc, char** argv) {
   app.add_option("--gravity", gravity, "gravity X,Y,Z [m/s^2] (scene units for molecules)")
       ->delimiter(',')->expected(3)->capture_default_str();
   app.add_option("--max-children", max_children,
-                 "degree reduction of the assembly tree (0: off)")->capture_default_str();
+                 "split bodies with more children than this into rigid pieces so the assembly stays "
+                 "logarithmic; exact (pieces are assembled in inertia form). 0: off; use it for "
+                 "hubs with dozens of children")->capture_default_str();
   app.add_option("--indent", indent, "JSON indent (-1: one line)")->capture_default_str();
   app.footer(kFooter);
   CLI11_PARSE(app, argc, argv);

@@ -15,12 +15,13 @@ namespace haptree {
 namespace {
 
 TEST(Allocation, ForwardDynamicsAndIntegrationAllocateNothing) {
-  for (const char* scene : {"chain", "random_tree", "protein_like"}) {
+  for (const char* scene : {"chain", "random_tree", "protein_like", "star"}) {
     SceneOptions o;
     o.n = 300;
     o.seed = 2;
-    o.mixed_joints = std::string(scene) == "random_tree";
+    o.mixed_joints = std::string(scene) == "random_tree" || std::string(scene) == "star";
     o.free_root = o.mixed_joints;
+    if (std::string(scene) == "star") o.build.max_children = 4;   // inertia-form hub nodes
     auto model = make_scene(scene, o);
     State st(*model);
     Data d(*model);

@@ -120,6 +120,7 @@ struct Case {
   std::string scene;
   int n;
   bool mixed, free_root, oracle;
+  int max_children = 0;   // degree reduction (§4.4): hub pieces assembled in inertia form
 };
 
 class CouplingVsFullPass : public ::testing::TestWithParam<Case> {};
@@ -133,6 +134,7 @@ TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
     o.n = c.n;
     o.seed = seed;
     o.mixed_joints = c.mixed;
+    o.build.max_children = c.max_children;
     o.free_root = c.free_root;
     auto model = make_scene(c.scene, o);
     const Model& m = *model;
@@ -206,10 +208,13 @@ INSTANTIATE_TEST_SUITE_P(
                       Case{"binary_tree", 63, false, true, true},
                       Case{"binary_tree", 511, false, false, false},
                       Case{"star", 16, false, true, true},
+                      Case{"star", 200, true, false, true, 4},
+                      Case{"star", 200, false, true, true, 2},
                       Case{"protein_like", 0, false, false, true}),
     [](const auto& info) {
       return info.param.scene + "_" + std::to_string(info.param.n) +
-             (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "");
+             (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "") +
+             (info.param.max_children ? "_reduced" : "");
     });
 
 // Hybrid (adaptive) bodies: the active region contains the grabbed leaves' up-regions, siblings are
