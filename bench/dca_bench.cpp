@@ -54,14 +54,15 @@ void randomise(const Model& m, haptree::State& st, unsigned seed) {
   }
 }
 
-Case& get_case(const std::string& scene, int n) {
+Case& get_case(const std::string& scene, int n, int max_children = 0) {
   static std::map<std::pair<std::string, int>, Case> cache;
-  auto key = std::make_pair(scene, n);
+  auto key = std::make_pair(scene + "/" + std::to_string(max_children), n);
   auto it = cache.find(key);
   if (it != cache.end()) return it->second;
   haptree::SceneOptions o;
   o.n = n;
   o.seed = 1;
+  o.build.max_children = max_children;
   Case c;
   c.model = haptree::make_scene(scene, o);
   c.state = std::make_unique<haptree::State>(*c.model);
@@ -70,8 +71,8 @@ Case& get_case(const std::string& scene, int n) {
   return cache.emplace(key, std::move(c)).first->second;
 }
 
-void run(benchmark::State& bs, const std::string& scene, int n) {
-  Case& c = get_case(scene, n);
+void run(benchmark::State& bs, const std::string& scene, int n, int max_children = 0) {
+  Case& c = get_case(scene, n, max_children);
   const Model& m = *c.model;
   for (auto _ : bs) {
     const Eigen::VectorXd& qdd = haptree::forward_dynamics(m, *c.data, *c.state);
@@ -89,6 +90,9 @@ void run(benchmark::State& bs, const std::string& scene, int n) {
 void BM_Chain(benchmark::State& bs) { run(bs, "chain", static_cast<int>(bs.range(0))); }
 void BM_BinaryTree(benchmark::State& bs) { run(bs, "binary_tree", static_cast<int>(bs.range(0))); }
 void BM_ProteinLike(benchmark::State& bs) { run(bs, "protein_like", 857); }
+// A hub with n-1 leaves, split into rigid pieces (max_children = 4) and assembled in inertia form.
+// "bodies" counts the pieces too (2n-2 bodies for n-1 DOF leaves + the spherical hub).
+void BM_StarSplit(benchmark::State& bs) { run(bs, "star", static_cast<int>(bs.range(0)), 4); }
 
 void sizes(benchmark::internal::Benchmark* b) {
   for (int n = 16; n <= 65536; n *= 4) b->Arg(n);
@@ -97,6 +101,7 @@ void sizes(benchmark::internal::Benchmark* b) {
 BENCHMARK(BM_Chain)->Apply(sizes)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_BinaryTree)->Apply(sizes)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_ProteinLike)->Unit(benchmark::kMicrosecond);
+BENCHMARK(BM_StarSplit)->Arg(64)->Arg(256)->Arg(1024)->Arg(4096)->Unit(benchmark::kMicrosecond);
 
 }  // namespace
 

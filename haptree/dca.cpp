@@ -342,6 +342,7 @@ inline Vec3 handle_offset(const Model& m, const Data& d, int node, int slot) {
 
 // Inertia I given at point o + delta, moved to o: Xᵀ I X with X = M(o → o + delta).
 inline Mat6 inertia_at_origin(const Mat6& I, const Vec3& delta) {
+  if (delta.isZero(0)) return I;   // pieces of a split hub share its origin
   const Mat6 X = motion_shift_matrix(delta);
   return X.transpose() * I * X;
 }
@@ -465,9 +466,10 @@ void assemble_inertia_form(const Model& m, Data& d, int node, const Eigen::Vecto
   const int h = t.handle_num[node];
   for (int x = 0; x < h; ++x) {
     const Vec3 dx = handle_offset(m, d, node, x);
-    const Mat6 XM = motion_shift_matrix(dx) * Minv;
+    const Mat6 XM = dx.isZero(0) ? Minv : shift_rows(dx, Minv);
     for (int y = x; y < h; ++y) {
-      const Mat6 blk = XM * motion_shift_matrix(handle_offset(m, d, node, y)).transpose();
+      const Vec3 dy = handle_offset(m, d, node, y);
+      const Mat6 blk = dy.isZero(0) ? XM : shift_cols(XM, dy);
       d.Phi(node, h, x, y) = blk;
       if (y != x) d.Phi(node, h, y, x) = blk.transpose();
     }
