@@ -12,15 +12,6 @@ namespace {
 using MatX = Eigen::MatrixXd;
 using VecX = Eigen::VectorXd;
 
-MatMap Psi_map(const Model& m, AdaptiveData& ad, const Data& d, int node) {
-  const int h = m.tree.handle_num[node];
-  return MatMap(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
-}
-CMatMap Psi_map(const Model& m, const AdaptiveData& ad, const Data& d, int node) {
-  const int h = m.tree.handle_num[node];
-  return CMatMap(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
-}
-
 // Gathers every body of a node's subtree (iterative; no recursion on deep trees).
 template <class F>
 void for_each_body(const AssemblyTree& t, int node, std::vector<int>& stack, F&& f) {
@@ -66,71 +57,110 @@ AdaptiveData::AdaptiveData(const Model& m) {
   active_joints.reserve(nb);
   loaded_bodies.reserve(nb);
   heap.reserve(nn);
+  const int hm = std::max(1, t.max_handles);
+  scratch_K.assign(hm, Mat6::Zero());
+  scratch_V.assign(hm, Mat6::Zero());
+  scratch_Y.assign(static_cast<std::size_t>(hm + 1) * hm, Mat6::Zero());
 }
 
-// §8: Ψ, p, η bottom-up from the full-articulated coefficients held in `d`.
+// §8: Ψ, p, η bottom-up from the full-articulated coefficients held in `d`. With f^C the handle
+// forces of C, the children's handle forces are f^P = MP f^C + mP and f^Q = MQ f^C + mQ, where MP
+// injects C's P-slots and carries −K at slot j (f_c = K f^C + β), MQ likewise with +K at slot k.
+// Ψ_C = MPᵀΨ_P MP + MQᵀΨ_Q MQ + V_Jᵀ D Dᵀ V_J is formed block by block (6×6, no allocation):
+// MP is an injection plus one block row, so only the blocks it touches are multiplied.
 void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
   const auto& t = m.tree;
+  auto psi = [&](int node, int h, int a, int b) {
+    return BlockMap(ad.Psi_buf.data() + d.Phi_adr[node] + 6 * a + 36 * h * b,
+                    Eigen::OuterStride<>(6 * h));
+  };
+  auto pv = [&](int node, int slot) { return VecMap(ad.p_buf.data() + d.vec_adr[node] + 6 * slot); };
   for (int node = t.nnodes() - 1; node >= 0; --node) {
+    const int hC = t.handle_num[node];
     if (t.is_leaf(node)) {
       ad.eta[node] = 0;
-      const int h = t.handle_num[node];
-      Psi_map(m, ad, d, node).setZero();
-      for (int s = 0; s < 6 * h; ++s) ad.p_buf[d.vec_adr[node] + s] = 0;
+      for (int x = 0; x < hC; ++x) {
+        for (int y = 0; y < hC; ++y) psi(node, hC, x, y).setZero();
+        pv(node, x).setZero();
+      }
       continue;
     }
     const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
     const int j = t.slot_j[node], k = t.slot_k[node];
-    const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+    const int hP = t.handle_num[P], hQ = t.handle_num[Q];
     const Mat6& W = d.W[node];
     const Vec6& beta = d.beta[node];
-    // K, Rr (6 × 6hC): f_c = K f^C + β, s_Q − s_P = Rr f^C.
-    MatX K(6, 6 * hC), Rr(6, 6 * hC);
-    MatX MP = MatX::Zero(6 * hP, 6 * hC), MQ = MatX::Zero(6 * hQ, 6 * hC);
-    int c = 0;
-    for (int i = 0; i < hP; ++i) {
-      if (i == j) continue;
-      const Mat6 Pji = d.Phi(P, hP, j, i);
-      K.block<6, 6>(0, 6 * c) = W * Pji;
-      Rr.block<6, 6>(0, 6 * c) = -Pji;
-      MP.block<6, 6>(6 * i, 6 * c).setIdentity();
-      ++c;
+    // C slot c comes from P slot src(c) (c < hP − 1, skipping j) or from Q slot src(c) (skipping k).
+    auto from_p = [&](int c) { return c < hP - 1; };
+    auto src = [&](int c) {
+      if (from_p(c)) return c < j ? c : c + 1;
+      const int l = c - (hP - 1);
+      return l < k ? l : l + 1;
+    };
+    Mat6* K = ad.scratch_K.data();
+    Mat6* V = ad.scratch_V.data();   // Rr_c first, then Φ̂ K_c + Rr_c
+    for (int c = 0; c < hC; ++c) {
+      if (from_p(c)) {
+        const Mat6 Pji = d.Phi(P, hP, j, src(c));
+        K[c].noalias() = W * Pji;
+        V[c] = -Pji;
+      } else {
+        const Mat6 Qkl = d.Phi(Q, hQ, k, src(c));
+        K[c].noalias() = -W * Qkl;
+        V[c] = Qkl;
+      }
     }
-    for (int l = 0; l < hQ; ++l) {
-      if (l == k) continue;
-      const Mat6 Qkl = d.Phi(Q, hQ, k, l);
-      K.block<6, 6>(0, 6 * c) = -W * Qkl;
-      Rr.block<6, 6>(0, 6 * c) = Qkl;
-      MQ.block<6, 6>(6 * l, 6 * c).setIdentity();
-      ++c;
-    }
-    MP.middleRows<6>(6 * j) = -K;
-    MQ.middleRows<6>(6 * k) = K;
-    VecX mP = VecX::Zero(6 * hP), mQ = VecX::Zero(6 * hQ);
-    mP.segment<6>(6 * j) = -beta;
-    mQ.segment<6>(6 * k) = beta;
-    const AdaptiveData& cad = ad;
-    const CMatMap PsiP = Psi_map(m, cad, d, P), PsiQ = Psi_map(m, cad, d, Q);
-    const Eigen::Map<const VecX> pP(ad.p_buf.data() + d.vec_adr[P], 6 * hP);
-    const Eigen::Map<const VecX> pQ(ad.p_buf.data() + d.vec_adr[Q], 6 * hQ);
-    MatMap PsiC = Psi_map(m, ad, d, node);
-    Eigen::Map<VecX> pC(ad.p_buf.data() + d.vec_adr[node], 6 * hC);
-    PsiC = MP.transpose() * PsiP * MP + MQ.transpose() * PsiQ * MQ;
-    pC = MP.transpose() * (2 * PsiP * mP + pP) + MQ.transpose() * (2 * PsiQ * mQ + pQ);
-    double eta = mP.dot(PsiP * mP) + mP.dot(pP) + ad.eta[P] + mQ.dot(PsiQ * mQ) + mQ.dot(pQ) +
-                 ad.eta[Q];
+    // Y_X[a][c2] = (Ψ_X M_X)[a][c2] for each child X; T_X(c1, c2) = (M_Xᵀ Y_X)[c1][c2].
+    Mat6* Y = ad.scratch_Y.data();
+    auto side = [&](int X, int hX, int sJ, bool is_p, double sign) {
+      auto owns = [&](int c) { return from_p(c) == is_p; };
+      for (int a = 0; a < hX; ++a)
+        for (int c2 = 0; c2 < hC; ++c2) {
+          Mat6& y = Y[a * hC + c2];
+          y.noalias() = sign * (psi(X, hX, a, sJ) * K[c2]);
+          if (owns(c2)) y += psi(X, hX, a, src(c2));
+        }
+      for (int c1 = 0; c1 < hC; ++c1)
+        for (int c2 = c1; c2 < hC; ++c2) {
+          Mat6 blk = sign * (K[c1].transpose() * Y[sJ * hC + c2]);
+          if (owns(c1)) blk += Y[src(c1) * hC + c2];
+          if (is_p) psi(node, hC, c1, c2) = blk;
+          else psi(node, hC, c1, c2) += blk;
+        }
+      // p: z[a] = 2 Ψ_X[a][sJ] m + p_X[a] with m = ∓β at sJ.
+      const Vec6 m_s = sign * beta;
+      const Vec6 zJ = 2 * (psi(X, hX, sJ, sJ) * m_s) + pv(X, sJ);
+      for (int c = 0; c < hC; ++c) {
+        Vec6 v = sign * (K[c].transpose() * zJ);
+        if (owns(c)) v += 2 * (psi(X, hX, src(c), sJ) * m_s) + pv(X, src(c));
+        if (is_p) pv(node, c) = v;
+        else pv(node, c) += v;
+      }
+      return m_s.dot(psi(X, hX, sJ, sJ) * m_s) + m_s.dot(pv(X, sJ)) + ad.eta[X];
+    };
+    double eta = side(P, hP, j, true, -1.0);
+    eta += side(Q, hQ, k, false, 1.0);
     const int nJ = m.v_num[J];
     if (nJ > 0) {
       JointMat S, T, D;
       joint_subspaces(m, d, J, S, T, D);
       const Mat6 Phat = d.Phi(P, hP, j, j) + d.Phi(Q, hQ, k, k);
-      const MatX Qm = D.transpose() * (Phat * K + Rr);
-      const VecX q0 = D.transpose() * (Phat * beta + d.b(Q, k) - d.b(P, j) - d.c[J]);
-      PsiC += Qm.transpose() * Qm;   // A_J = 1
-      pC += 2 * Qm.transpose() * q0;
-      eta += q0.squaredNorm();
+      const Mat6 DD = D * D.transpose();
+      const Vec6 q0 = Phat * beta + d.b(Q, k) - d.b(P, j) - d.c[J];
+      const Vec6 Dq0 = DD * q0;
+      for (int c = 0; c < hC; ++c) V[c].noalias() += Phat * K[c];
+      for (int c1 = 0; c1 < hC; ++c1) {
+        const Mat6 VtDD = V[c1].transpose() * DD;
+        for (int c2 = c1; c2 < hC; ++c2) psi(node, hC, c1, c2).noalias() += VtDD * V[c2];
+        pv(node, c1).noalias() += 2 * (V[c1].transpose() * Dq0);
+      }
+      eta += q0.dot(Dq0);
     }
-    PsiC = (0.5 * (PsiC + PsiC.transpose())).eval();
+    for (int c1 = 0; c1 < hC; ++c1) {
+      const Mat6 dblk = psi(node, hC, c1, c1);
+      psi(node, hC, c1, c1) = 0.5 * (dblk + dblk.transpose());
+      for (int c2 = c1 + 1; c2 < hC; ++c2) psi(node, hC, c2, c1) = psi(node, hC, c1, c2).transpose();
+    }
     ad.eta[node] = eta;
   }
 }

@@ -75,8 +75,8 @@ struct AdaptiveData {
   AdaptiveOptions last_options;
   int steps_since_selection = 1 << 30;
   AdaptiveReport report;
-  // Scratch for selection (sized once).
-  Eigen::MatrixXd scratch_a, scratch_b, scratch_c;
+  // Scratch for the metric coefficients (sized once from the largest handle count).
+  std::vector<Mat6> scratch_K, scratch_V, scratch_Y;
   std::vector<std::pair<double, int>> heap;
 };
 
