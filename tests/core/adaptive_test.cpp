@@ -71,7 +71,9 @@ TEST(Adaptive, LockedSubsetMatchesOracleWithDofsRemoved) {
       worst = std::max(worst, e);
       EXPECT_LE(e, 1e-9) << name << " seed " << seed;
       for (int i = 0; i < m->nv; ++i)
-        if (locked[i]) EXPECT_EQ(qa(i), 0.0);
+        if (locked[i]) {
+          EXPECT_EQ(qa(i), 0.0);
+        }
     }
   }
   RecordProperty("max_rel_err", std::to_string(worst));
@@ -143,7 +145,9 @@ TEST(Adaptive, SelectionErrorEqualsOracleSumAndRespectsBounds) {
       EXPECT_EQ(dofs, ad.report.active_dofs);
       // The active set is a rooted subtree.
       for (int node : ad.active_nodes)
-        if (m->tree.up[node] >= 0) EXPECT_TRUE(ad.active[m->tree.up[node]]);
+        if (m->tree.up[node] >= 0) {
+          EXPECT_TRUE(ad.active[m->tree.up[node]]);
+        }
     }
   }
 }
@@ -188,7 +192,9 @@ TEST(Adaptive, StepsStayFiniteWhileEpsilonAndBudgetChange) {
     opt.epsilon = std::pow(10.0, -static_cast<double>(rng() % 8));
     adaptive_step(*m, d, st, ad, opt, 1e-3);
     ASSERT_TRUE(st.q.allFinite() && st.qd.allFinite()) << i;
-    if (opt.mode == AdaptiveOptions::Mode::kBudget) EXPECT_LE(ad.report.active_dofs, opt.budget);
+    if (opt.mode == AdaptiveOptions::Mode::kBudget) {
+      EXPECT_LE(ad.report.active_dofs, opt.budget);
+    }
   }
 }
 
