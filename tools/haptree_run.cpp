@@ -1,6 +1,9 @@
 // haptree_run: the README's main command. Starts sim_server, one coupler and one device_bridge per user
 // as threads over one memq:// Bus (the embedded default: same classes as the three processes), shows a
 // live status line once per second and a summary at the end. No display, no network needed.
+// --processes: the same session with the three real executables as child processes on this host
+// (tools/haptree_run_processes.cpp): device link over shared memory, the rest over a loopback-only LCM
+// tcpq hub run by the launcher (or udpm, only inside a private network namespace).
 #include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
@@ -20,6 +23,7 @@
 #include "haptree/bus/bus.hpp"
 #include "haptree/dca.hpp"
 #include "sim_server/sim_server.hpp"
+#include "tools/haptree_run_processes.hpp"
 
 namespace {
 std::atomic<bool> g_stop{false};
@@ -27,7 +31,11 @@ void on_signal(int) { g_stop = true; }
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"haptree_run: sim_server + coupler + scripted device in one process over memq:// (grab, pull, release)"};
+  CLI::App app{"haptree_run: sim_server + coupler + scripted device (grab, pull, release). Default: one process,\n"
+               "the three classes in threads over memq://. --processes: the three real executables as child\n"
+               "processes on this host (device link over shared memory, the rest over a 127.0.0.1-only LCM\n"
+               "tcpq hub run by haptree_run; nothing leaves the machine); Ctrl-C/SIGTERM stop and reap them,\n"
+               "exit code 1 with the child's log tail if any child fails"};
   haptree::SimServerOptions so;
   so.scene = "protein_like";
   so.n = 64;
@@ -54,11 +62,40 @@ int main(int argc, char** argv) {
   app.add_option("--damping", damping, "b_s (scene units)")->capture_default_str();
   app.add_option("--max-force-n", max_force_n, "device force limit")->capture_default_str();
   app.add_option("--pull-distance-m", pull_distance_m, "scripted pull, device metres")->capture_default_str();
-  app.add_option("--lcm-url", lcm_url, "bus for all threads (memq:// keeps everything in-process)")->capture_default_str();
+  app.add_option("--lcm-url", lcm_url, "bus for all threads (memq:// keeps everything in-process; embedded mode only)")
+      ->capture_default_str();
+  haptree::tools::ProcessesOptions po;
+  app.add_flag("--processes", po.enabled,
+               "run sim_server, coupler(s) and device_bridge(s) as real child processes instead of threads");
+  app.add_option("--bin-dir", po.bin_dir,
+                 "--processes: folder holding sim_server, coupler, device_bridge (default: found next to "
+                 "haptree_run in the build tree: ../sim_server/sim_server etc., or the same folder)");
+  app.add_option("--transport", po.transport,
+                 "--processes: shm = device link over shared memory + loopback tcpq hub (127.0.0.1) for the rest; "
+                 "udpm = everything over udpm ttl=0, refused unless haptree_run runs in a private network "
+                 "namespace (e.g. `unshare -n` with a multicast route on lo)")
+      ->check(CLI::IsMember({"shm", "udpm"}))->capture_default_str();
+  app.add_option("--log-dir", po.log_dir,
+                 "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
   CLI11_PARSE(app, argc, argv);
   so.users = users;
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
+  if (po.enabled) {
+    po.argv0 = argv[0];
+    haptree::tools::SessionOptions se;
+    se.sim = so;
+    se.duration_s = duration_s;
+    se.users = users;
+    se.coupler_rate_hz = coupler_rate_hz;
+    se.position_scale = position_scale;
+    se.force_scale = force_scale;
+    se.stiffness = stiffness;
+    se.damping = damping;
+    se.max_force_n = max_force_n;
+    se.pull_distance_m = pull_distance_m;
+    return haptree::tools::run_processes(po, se, g_stop);
+  }
   try {
     haptree::bus::Bus bus(lcm_url);
     haptree::SimServer server(bus, so);

@@ -1,0 +1,42 @@
+#pragma once
+// `haptree_run --processes`: the launcher's session with the real sim_server, coupler and device_bridge
+// executables as child processes on this host (docs/processes.md).
+#include <atomic>
+#include <string>
+
+#include "sim_server/sim_server.hpp"
+
+namespace haptree::tools {
+
+struct ProcessesOptions {
+  bool enabled = false;
+  std::string bin_dir;            // "" = next to haptree_run in the build tree
+  std::string transport = "shm";  // shm (+ loopback tcpq hub) | udpm (private netns only)
+  std::string log_dir;            // "" = mkdtemp /tmp/haptree_run.XXXXXX
+  std::string argv0;
+};
+
+// The launcher's session options (the same for both modes).
+struct SessionOptions {
+  SimServerOptions sim;
+  double duration_s = 10;
+  int users = 1;
+  double coupler_rate_hz = 10000;
+  double position_scale = 10, force_scale = 0.5, stiffness = 20, damping = 0, max_force_n = 3;
+  double pull_distance_m = 0.03;
+};
+
+// "" if this process runs in a network namespace other than PID 1's and without a default route
+// (udpm ttl=0 there cannot reach another machine); otherwise the reason, in plain words.
+std::string private_netns_problem();
+
+// Finds sim_server / coupler / device_bridge: bin_dir/<name>, bin_dir/<name>/<name>, then next to argv0
+// (<dir>/<name>, <dir>/../<name>/<name>). Throws std::runtime_error listing the places tried.
+std::string find_executable(const std::string& name, const std::string& bin_dir, const std::string& argv0);
+
+// Spawns the children, prints the status line every second and the summary, stops them after
+// duration_s or when `stop` becomes true (SIGTERM, then SIGKILL after 5 s), reaps them. Returns 0 if
+// every child exited 0 after being asked to, 1 (with the child's log tail on stderr) otherwise.
+int run_processes(const ProcessesOptions& po, const SessionOptions& se, const std::atomic<bool>& stop);
+
+}  // namespace haptree::tools
