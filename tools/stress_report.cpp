@@ -1,7 +1,8 @@
 // stress_report: the longer numerical-stability report behind docs/accuracy_and_stability.md.
 // Sections (all by default):
-//   drift    energy drift of the conservative 857-DOF protein-like run (semi-implicit Euler) over
-//            --steps steps at several dt, then a dt sweep (doubling) that finds where it blows up;
+//   drift    energy drift of conservative 857-DOF protein-like runs (scenes fall and tumble) with
+//            semi-implicit Euler and/or RK4 (--integrator) over a short horizon and over --steps
+//            steps at several dt, halving dt below the list until a run survives --steps steps;
 //   far      q̈ of models placed 10^3 … 10^15 m from the origin against the same model at the origin
 //            (and what the world-origin long-double oracle does there);
 //   ratio    mass ratio 10^-k … 10^k between neighbouring links: error vs the long-double oracle;
@@ -10,9 +11,11 @@
 //   long     chains of 2^10 … 2^--max-log2 bodies: finite q̈, agreement with a shifted origin, time.
 // Every "limit" reported is the first sweep value at which the stated criterion fails.
 #include <CLI/CLI.hpp>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 
@@ -30,44 +33,110 @@ double seconds_since(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
 
-void print_drift_row(double dt, const DriftResult& r, double wall) {
-  char tn[32] = "never";
-  if (r.t_nonfinite >= 0) std::snprintf(tn, sizeof tn, "%.4g", r.t_nonfinite);
-  std::printf("| %g | %d | %g | %.3e | %.3e | %.3e | %.3e | %s | %.1f |\n", dt, r.steps_done,
-              r.steps_done * dt, r.max_abs_drift, r.final_drift, r.max_kinetic, r.rel_drift, tn, wall);
+void print_drift_row(const char* method, double dt, const DriftResult& r, double wall) {
+  char tb[48] = "never";
+  if (r.cut) std::snprintf(tb, sizeof tb, "cut (wall limit)");
+  if (r.t_blowup >= 0)
+    std::snprintf(tb, sizeof tb, "%.4g%s", r.t_blowup, r.finite ? " (energy)" : " (NaN)");
+  char rel[32] = "—";
+  if (r.survived || r.cut) std::snprintf(rel, sizeof rel, "%.3e", r.rel_drift);
+  std::printf("| %s | %g | %d | %g | %.3e | %.3e | %.3e | %.3e | %s | %s | %.1f |\n", method, dt,
+              r.steps_done, r.steps_done * dt, r.max_abs_drift, r.final_drift, r.max_kinetic,
+              r.max_qd, rel, tb, wall);
   std::fflush(stdout);
 }
 
-void section_drift(int steps, const std::vector<double>& dts, double vel_scale, double horizon_s) {
-  std::printf("\n## Energy drift: protein-like tree, 857 DOF, gravity on, tau = 0, semi-implicit Euler\n");
-  std::printf("Initial state: testing::random_state(seed 11): angles in [-1, 1] rad, rates x %g, no external "
-              "forces.\nrel = max_t |E(t) - E(0)| / max_t KE(t) (steps until the state first goes non-finite).\n\n", vel_scale);
-  SceneOptions o;
-  auto m = make_protein_like(o);
-  const State st0 = clean_state(*m, 11, vel_scale);
+struct DriftSettings {
+  int steps = 100000;
+  std::vector<double> dts{1e-3, 5e-4, 2.5e-4, 1e-4};
+  std::vector<std::string> scenes{"fall", "tumble"};
+  std::vector<std::string> integrators{"euler", "rk4"};
+  double horizon_s = 0.25;
+  double blowup_factor = 10;   // blow-up: |E − E0| > factor × kinetic-energy bound
+  int max_halvings = 6;        // below the smallest listed dt, while nothing survives
+  int progress_every = 10000;
+  bool limit_search = true;
+  double max_wall_s = 0;       // per run; 0: no limit (a cut run neither survives nor fails)
+};
+
+DriftResult drift_run(const DriftScene& sc, Integrator method, double dt, int steps,
+                      const DriftSettings& cfg) {
+  DriftOptions opt;
+  opt.method = method;
+  opt.blowup_J = cfg.blowup_factor * sc.ke_bound;
+  opt.progress_every = cfg.progress_every;
+  if (cfg.max_wall_s > 0) opt.max_wall_s = cfg.max_wall_s;
+  const auto t0 = Clock::now();
+  opt.progress = [&](const DriftProgress& p) {
+    spdlog::info("drift {} {} dt={:g}: step {}/{} t={:.4g} s E-E0={:.3e} J KE={:.3e} J max|qd|={:.3e} ({:.0f} s)",
+                 sc.name, integrator_name(method), dt, p.step, p.steps, p.t, p.drift, p.kinetic,
+                 p.max_qd, seconds_since(t0));
+  };
+  return energy_drift(*sc.model, sc.st0, dt, steps, opt);
+}
+
+void section_drift(const DriftSettings& cfg) {
+  std::printf("\n## Energy drift: conservative runs of the 857-DOF protein-like tree (tau = 0)\n");
+  std::printf("rel = max_t |E(t) - E(0)| / max_t KE(t). A run blows up when it goes non-finite (NaN) or "
+              "when |E - E0| exceeds %g x the kinetic-energy bound (energy): no physical state has that "
+              "energy. t(blow-up) is simulated time.\n", cfg.blowup_factor);
   const char* head =
-      "| dt [s] | steps | simulated [s] | max abs drift [J] | final drift [J] | max KE [J] | rel | "
-      "t(non-finite) [s] | wall [s] |\n|---|---|---|---|---|---|---|---|---|\n";
-  std::printf("Fixed horizon of %g s simulated:\n\n", horizon_s);
-  std::printf(head);
-  for (double dt : dts) {
-    const auto t0 = Clock::now();
-    const auto r = energy_drift(*m, st0, dt, static_cast<int>(std::lround(horizon_s / dt)));
-    print_drift_row(dt, r, seconds_since(t0));
+      "| integrator | dt [s] | steps | simulated [s] | max abs drift [J] | final drift [J] | max KE [J] | "
+      "max abs qd [rad/s] | rel | t(blow-up) [s] | wall [s] |\n|---|---|---|---|---|---|---|---|---|---|---|\n";
+  for (const auto& scene_name : cfg.scenes) {
+    const DriftScene sc = drift_scene(scene_name);
+    std::printf("\n### Scene %s: %s\nKinetic-energy bound (E0 - lowest possible potential): %.4e J\n",
+                sc.name.c_str(), sc.description.c_str(), sc.ke_bound);
+    if (cfg.horizon_s > 0) {
+      std::printf("\nFixed horizon of %g s simulated:\n\n%s", cfg.horizon_s, head);
+      for (const auto& iname : cfg.integrators) {
+        const Integrator method = parse_integrator(iname);
+        for (double dt : cfg.dts) {
+          const auto t0 = Clock::now();
+          const auto r = drift_run(sc, method, dt, static_cast<int>(std::lround(cfg.horizon_s / dt)), cfg);
+          print_drift_row(integrator_name(method), dt, r, seconds_since(t0));
+        }
+      }
+    }
+    std::printf("\n%d steps per dt (dt list, then halving below it while nothing survives):\n\n%s",
+                cfg.steps, head);
+    for (const auto& iname : cfg.integrators) {
+      const Integrator method = parse_integrator(iname);
+      std::vector<double> dts = cfg.dts;
+      std::sort(dts.rbegin(), dts.rend());
+      double best = NAN, failed_above = NAN, failed_at = NAN, last_cut = NAN;
+      auto run = [&](double dt) {
+        const auto t0 = Clock::now();
+        const auto r = drift_run(sc, method, dt, cfg.steps, cfg);
+        print_drift_row(integrator_name(method), dt, r, seconds_since(t0));
+        if (r.survived && std::isnan(best)) best = dt;
+        if (!r.survived && !r.cut && std::isnan(best)) { failed_above = dt; failed_at = r.t_blowup; }
+        if (r.cut && std::isnan(best)) last_cut = dt;
+        return r.survived;
+      };
+      for (double dt : dts) run(dt);
+      if (cfg.limit_search && std::isnan(best)) {
+        double dt = dts.back();
+        for (int h = 0; h < cfg.max_halvings && std::isnan(best) && std::isnan(last_cut); ++h)
+          run(dt *= 0.5);
+      }
+      if (std::isnan(best) && !std::isnan(last_cut))
+        std::printf("\nLIMIT drift/%s/%s: not found (runs down to %g s were cut by --max-wall-s; "
+                    "smallest dt that blew up: %g s, at t = %.4g s)\n\n",
+                    sc.name.c_str(), integrator_name(method), last_cut, failed_above, failed_at);
+      else if (std::isnan(best))
+        std::printf("\nLIMIT drift/%s/%s: nothing down to the smallest dt tried survives %d steps\n\n",
+                    sc.name.c_str(), integrator_name(method), cfg.steps);
+      else if (std::isnan(failed_above))
+        std::printf("\nLIMIT drift/%s/%s: the largest dt tried (%g s) survives %d steps\n\n",
+                    sc.name.c_str(), integrator_name(method), best, cfg.steps);
+      else
+        std::printf("\nLIMIT drift/%s/%s: largest dt tried that survives %d steps: %g s "
+                    "(%g s blows up at t = %.4g s)\n\n",
+                    sc.name.c_str(), integrator_name(method), cfg.steps, best, failed_above, failed_at);
+      std::fflush(stdout);
+    }
   }
-  std::printf("\n%d steps per dt:\n\n", steps);
-  std::printf(head);
-  double longest_ok = NAN;
-  for (double dt : dts) {
-    const auto t0 = Clock::now();
-    const auto r = energy_drift(*m, st0, dt, steps);
-    print_drift_row(dt, r, seconds_since(t0));
-    if (r.finite && std::isnan(longest_ok)) longest_ok = dt;
-  }
-  if (std::isnan(longest_ok))
-    std::printf("\nLIMIT drift: no dt in the list survives %d steps (times above show where each fails)\n", steps);
-  else
-    std::printf("\nLIMIT drift: largest dt in the list that stays finite for %d steps: %g s\n", steps, longest_ok);
 }
 
 void section_far(double tol) {
@@ -197,15 +266,27 @@ void section_long(int max_log2, double tol) {
 int main(int argc, char** argv) {
   CLI::App app{"haptree numerical stress report (markdown on stdout)"};
   std::vector<std::string> sections{"drift", "far", "ratio", "coaxial", "size", "long"};
-  int steps = 100000, ratio_n = 16, ratio_max_exp = 12, coaxial_n = 15,
-      oracle_max_n = 1024, max_log2 = 18;
-  std::vector<double> dts{1e-3, 5e-4, 2.5e-4, 1e-4};
-  double tol = 1e-6, vel_scale = 0, horizon = 0.25;
+  int ratio_n = 16, ratio_max_exp = 12, coaxial_n = 15, oracle_max_n = 1024, max_log2 = 18;
+  DriftSettings drift;
+  double tol = 1e-6;
   app.add_option("--sections", sections, "drift far ratio coaxial size long")->capture_default_str();
-  app.add_option("--steps", steps, "drift: steps per dt")->capture_default_str();
-  app.add_option("--dt-s", dts, "drift: time steps [s]")->capture_default_str();
-  app.add_option("--vel-scale", vel_scale, "drift: initial joint rates x this (0: released from rest)")->capture_default_str();
-  app.add_option("--horizon-s", horizon, "drift: short fixed horizon [s]")->capture_default_str();
+  app.add_option("--steps", drift.steps, "drift: steps per dt")->capture_default_str();
+  app.add_option("--dt-s", drift.dts, "drift: time steps [s]")->capture_default_str();
+  app.add_option("--integrator", drift.integrators, "drift: euler (semi-implicit) and/or rk4")
+      ->capture_default_str();
+  app.add_option("--drift-scenes", drift.scenes, "drift: fall (gravity, from rest) and/or tumble (no gravity)")
+      ->capture_default_str();
+  app.add_option("--horizon-s", drift.horizon_s, "drift: short fixed horizon [s] (0: skip)")->capture_default_str();
+  app.add_option("--blowup-factor", drift.blowup_factor,
+                 "drift: blow-up when |E - E0| > this x the kinetic-energy bound")->capture_default_str();
+  app.add_option("--max-halvings", drift.max_halvings,
+                 "drift: halvings below the smallest dt while nothing survives")->capture_default_str();
+  app.add_flag("!--no-limit-search", drift.limit_search, "drift: only the listed dt");
+  app.add_option("--max-wall-s", drift.max_wall_s,
+                 "drift: wall-clock limit per run [s] (0: none); a cut run is reported as such")
+      ->capture_default_str();
+  app.add_option("--progress-steps", drift.progress_every, "drift: progress line (stderr) every N steps")
+      ->capture_default_str();
   app.add_option("--tol", tol, "relative q̈ error that counts as broken (far, ratio, coaxial, long)")->capture_default_str();
   app.add_option("--ratio-n", ratio_n, "ratio: chain length")->capture_default_str();
   app.add_option("--ratio-max-exp", ratio_max_exp, "ratio: sweep 1e-k … 1e+k")->capture_default_str();
@@ -213,11 +294,12 @@ int main(int argc, char** argv) {
   app.add_option("--oracle-max-n", oracle_max_n, "size: largest n checked against the oracle")->capture_default_str();
   app.add_option("--max-log2", max_log2, "long: largest chain is 2^k bodies")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  spdlog::set_default_logger(spdlog::stderr_color_mt("stress_report"));   // stdout: the markdown
   spdlog::info("stress_report: sections {}", fmt::join(sections, ","));
   std::printf("# haptree stress report\n");
   for (const auto& s : sections) {
     const auto t0 = Clock::now();
-    if (s == "drift") section_drift(steps, dts, vel_scale, horizon);
+    if (s == "drift") section_drift(drift);
     else if (s == "far") section_far(tol);
     else if (s == "ratio") section_ratio(ratio_n, ratio_max_exp, tol);
     else if (s == "coaxial") section_coaxial(coaxial_n, tol);
