@@ -65,3 +65,11 @@ endif()
 if(EXISTS ${PROJECT_SOURCE_DIR}/haptree/adaptive.cpp AND EXISTS ${PROJECT_SOURCE_DIR}/haptree/adaptive.hpp)
   target_compile_definitions(bench_peers PRIVATE HAPTREE_PEERS_ADAPTIVE)
 endif()
+
+# Bacteriorhodopsin (1c3w_protein_h torsion model) only when the molecule library is built.
+if(TARGET haptree_molecule)
+  target_link_libraries(bench_peers PRIVATE haptree_molecule)
+  target_compile_definitions(bench_peers PRIVATE HAPTREE_PEERS_MOLECULE)
+else()
+  message(STATUS "bench_peers: haptree_molecule not built, bacteriorhodopsin model skipped")
+endif()

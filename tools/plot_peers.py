@@ -3,6 +3,8 @@
 
 usage: tools/plot_peers.py bench_peers.csv -o docs/benchmarks_peers.png [--table]
 --table also prints the CSV as a markdown table (µs median, relative errors) on stdout.
+Times: the thread-CPU median per call (column cpu_us_median) when the CSV has it, else the wall-clock
+median (us_median); the table shows both.
 """
 import argparse
 import csv
@@ -21,21 +23,34 @@ def main():
     ap.add_argument("--table", action="store_true", help="print a markdown table on stdout")
     a = ap.parse_args()
     rows = list(csv.DictReader(open(a.csv)))
+    has_cpu = bool(rows) and "cpu_us_median" in rows[0]
+    tkey = "cpu_us_median" if has_cpu else "us_median"
     if a.table:
-        print("| model | DOF | engine | µs / call (median) | reps | rel. error vs oracle | "
-              "rel. error vs oracle, inactive DOFs locked |")
-        print("|---|---|---|---|---|---|---|")
+        cpu_h = "µs / call, thread CPU (median) | " if has_cpu else ""
+        print(f"| model | DOF | engine | {cpu_h}µs / call, wall (median) | reps | "
+              "rel. error vs oracle | rel. error vs oracle, inactive DOFs locked |")
+        print("|---|---|---|" + ("---|" if has_cpu else "") + "---|---|---|---|")
         for r in rows:
-            print(f"| {r['model']} | {r['nv']} | {r['engine']} | {float(r['us_median']):.4g} | "
+            if math.isnan(float(r["us_median"])):   # engine could not take the model
+                print(f"| {r['model']} | {r['nv']} | {r['engine']} | " + ("n/a | " if has_cpu else "")
+                      + f"n/a | – | {r['timed_call']} | n/a |")
+                continue
+            cpu = f"{float(r['cpu_us_median']):.4g} | " if has_cpu else ""
+            print(f"| {r['model']} | {r['nv']} | {r['engine']} | {cpu}{float(r['us_median']):.4g} | "
                   f"{r['reps']} | {float(r['rel_err']):.2e} | {float(r['rel_err_locked']):.2e} |")
-    models = sorted({r["model"] for r in rows if r["model"] != "protein_like"})
+    # Single-size models (protein-like tree, bacteriorhodopsin) get bar charts, the size sweeps lines.
+    tlabel = "µs, thread CPU (median)" if has_cpu else "µs, wall (median)"
+    single = [m for m in ("protein_like", "bacteriorhodopsin") if any(r["model"] == m for r in rows)]
+    models = sorted({r["model"] for r in rows if r["model"] not in single})
     engines = sorted({r["engine"] for r in rows})
-    fig, axes = plt.subplots(2, len(models) + 1, figsize=(5 * (len(models) + 1), 8))
+    ncol = max(len(models) + len(single), 1)
+    fig, axes = plt.subplots(2, ncol, figsize=(5 * ncol, 8), squeeze=False)
     markers = "osD^v<>px*"
     for col, model in enumerate(models):
         for i, eng in enumerate(engines):
-            pts = sorted((int(r["nv"]), float(r["us_median"]), float(r["rel_err"]))
-                         for r in rows if r["model"] == model and r["engine"] == eng)
+            pts = sorted((int(r["nv"]), float(r[tkey]), float(r["rel_err"]))
+                         for r in rows if r["model"] == model and r["engine"] == eng
+                         and not math.isnan(float(r["us_median"])))
             if not pts:
                 continue
             n = [p[0] for p in pts]
@@ -46,26 +61,33 @@ def main():
                                     marker=markers[i % len(markers)], label=eng)
         axes[0][col].set_title(f"{model}: time per forward-dynamics call")
         axes[0][col].set_xlabel("DOF n")
-        axes[0][col].set_ylabel("µs (median)")
+        axes[0][col].set_ylabel(tlabel)
         axes[1][col].set_title(f"{model}: relative q̈ error vs long-double oracle")
         axes[1][col].set_xlabel("DOF n")
         axes[1][col].set_ylabel("‖q̈ − q̈_oracle‖ / ‖q̈_oracle‖")
         for ax in (axes[0][col], axes[1][col]):
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
-    # Protein-like tree: bars.
-    prot = [r for r in rows if r["model"] == "protein_like"]
-    names = [r["engine"] for r in prot]
-    axes[0][-1].bar(names, [float(r["us_median"]) for r in prot])
-    axes[0][-1].set_yscale("log")
-    axes[0][-1].set_title("protein-like (857 DOF): µs per call")
-    full = [r for r in prot if not r["engine"].startswith("haptree_adaptive")]
-    axes[1][-1].bar([r["engine"] for r in full], [max(float(r["rel_err"]), 1e-17) for r in full])
-    axes[1][-1].set_yscale("log")
-    axes[1][-1].set_title("protein-like: relative q̈ error vs oracle")
-    for ax in (axes[0][-1], axes[1][-1]):
-        ax.tick_params(axis="x", rotation=45, labelsize=8)
-        ax.grid(True, axis="y", which="both", alpha=0.3)
+    titles = {"protein_like": "protein-like", "bacteriorhodopsin": "bacteriorhodopsin"}
+    for j, model in enumerate(single):
+        col = len(models) + j
+        sel = [r for r in rows if r["model"] == model and not math.isnan(float(r["us_median"]))]
+        if not sel:
+            continue
+        nv = sel[0]["nv"]
+        axes[0][col].bar([r["engine"] for r in sel], [float(r[tkey]) for r in sel])
+        axes[0][col].set_yscale("log")
+        axes[0][col].set_ylabel(tlabel)
+        axes[0][col].set_title(f"{titles[model]} ({nv} DOF): µs per call")
+        full = [r for r in sel if not r["engine"].startswith("haptree_adaptive")
+                and not math.isnan(float(r["rel_err"]))]
+        axes[1][col].bar([r["engine"] for r in full],
+                         [max(float(r["rel_err"]), 1e-17) for r in full])
+        axes[1][col].set_yscale("log")
+        axes[1][col].set_title(f"{titles[model]}: relative q̈ error vs oracle")
+        for ax in (axes[0][col], axes[1][col]):
+            ax.tick_params(axis="x", rotation=45, labelsize=8)
+            ax.grid(True, axis="y", which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(a.out, dpi=110)
     if not a.table:
