@@ -28,7 +28,7 @@ struct CouplerOptions {
   double rate_hz = 10000;             // coupling loop rate
   bool busy_wait = true;              // busy pacing (true) or sleep_until (false)
   double stiffness = 20;              // k_s, scene force / scene length
-  double damping = 0;                 // b_s, scene force / scene velocity (explicit: > 0 can destabilise light bodies)
+  double damping = 0;                 // b_s, scene force / scene velocity; < 2 m_eff/dt_sim − k_s dt_sim/2
   double position_scale = 10;         // scene length units per device metre
   double force_scale = 0.5;           // newtons per scene force unit
   Vec3 offset = Vec3::Zero();         // scene position of the device origin

@@ -513,7 +513,7 @@ Vec6 VirtualCoupling3::user_force(const Vec3& x_h, const Vec3& xd_h, const Vec3&
                                   const Vec3& xd_s) const {
   Vec6 f;
   f.head<3>().setZero();
-  f.tail<3>() = k_s * (x_h - x_s) - b_s * (xd_h - xd_s);
+  f.tail<3>() = k_s * (x_h - x_s) + b_s * (xd_h - xd_s);
   return f;
 }
 
@@ -527,7 +527,7 @@ Vec6 VirtualCoupling6::user_force(const Vec3& x_h, const Vec3& xd_h, const Mat3&
                                   const Mat3& R_s, const Vec3& w_s) const {
   Vec6 f = linear.user_force(x_h, xd_h, x_s, xd_s);
   const Mat3 R_target = R_s * R_grab;
-  f.head<3>() = k_r * rotation_log(R_h * R_target.transpose()) - b_r * (w_h - w_s);
+  f.head<3>() = k_r * rotation_log(R_h * R_target.transpose()) + b_r * (w_h - w_s);
   return f;
 }
 

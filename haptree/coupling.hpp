@@ -169,7 +169,10 @@ struct WorkspaceMapping {
   Vec3 scene_to_device_torque(const Vec3& tau_scene) const;       // → N·m
 };
 
-// 3-DOF: f = k_s (x_h − x_s) − b_s (ẋ_h − ẋ_s), applied at x_s. Scene units throughout.
+// 3-DOF: f = k_s (x_h − x_s) + b_s (ẋ_h − ẋ_s), applied at x_s: spring and damper both pull the
+// body towards the hand's motion (b_s > 0 damps the relative velocity). Scene units throughout.
+// Explicit integration bounds b_s on the simulated side: b_s < 2 m_eff/dt − k_s dt/2 (measured
+// by tools/passivity_sweep --bs-threshold, docs/accuracy_and_stability.md).
 struct VirtualCoupling3 {
   double k_s = 0;   // stiffness, scene force / scene length
   double b_s = 0;   // damping, scene force / scene velocity
@@ -178,7 +181,7 @@ struct VirtualCoupling3 {
 };
 
 // 6-DOF: the 3-DOF spring-damper on the point plus a rotational spring-damper
-// τ = k_r · log(R_h (R_s R_grab)ᵀ) − b_r (ω_h − ω_s), where R_grab is the device-to-body relative
+// τ = k_r · log(R_h (R_s R_grab)ᵀ) + b_r (ω_h − ω_s), where R_grab is the device-to-body relative
 // orientation captured at grab time (R_grab = R_sᵀ R_h then, so the torque starts at zero).
 // log(·) is the rotation vector (axis · angle, angle in [0, π]).
 struct VirtualCoupling6 {

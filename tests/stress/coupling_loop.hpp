@@ -4,7 +4,7 @@
 //   user's hand  : haptree::device::VirtualHand (mass, arm spring to a target trajectory, damping b),
 //                  integrated with substeps << T, feels the force written to it (no clamp here).
 //   coupler      : haptree::coupler_feedback (the coupler process's own pure function: mapping,
-//                  VirtualCoupling3 f_u = k_s (x_h − x_s) − b_s (ẋ_h − ẋ_s), coupling_forces on the
+//                  VirtualCoupling3 f_u = k_s (x_h − x_s) + b_s (ẋ_h − ẋ_s), coupling_forces on the
 //                  latest CouplingSnapshot), evaluated every haptic period T; the force is held (ZOH).
 //   simulation   : the same step as sim_server (SimServer::step_once + publish_snapshots): selection
 //                  with the grabbed leaf's root path forced active, the latest f_u applied at the grab
