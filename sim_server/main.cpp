@@ -30,6 +30,11 @@ int main(int argc, char** argv) {
   app.add_option("--rate-hz", o.rate_hz, "step rate (0 = free-running)")->capture_default_str();
   app.add_option("--display-rate-hz", o.display_rate_hz, "scene state rate")->capture_default_str();
   app.add_option("--users", o.users, "number of users (HAPTREE_USER_FORCE_0..)")->capture_default_str();
+  app.add_option("--max-joint-rate", o.max_joint_rate,
+                 "blow-up guard: a joint rate above this (or a non-finite state) restores the last "
+                 "healthy checkpoint at rest and is counted as a reset")->capture_default_str();
+  app.add_option("--checkpoint-every", o.checkpoint_every, "steps between checkpoints of a healthy state")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   o.channel_suffix = b.channel_suffix;
   std::signal(SIGINT, on_signal);

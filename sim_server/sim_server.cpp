@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <cmath>
 #include <limits>
 #include <stdexcept>
 #include <thread>
@@ -77,6 +78,7 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options) : bus_(bus)
     users_.push_back(std::move(slot));
   }
   forward_kinematics(*model_, *data_, state_->q);
+  checkpoint_ = std::make_unique<State>(*state_);
   spdlog::info("sim_server: scene '{}' with {} bodies, {} DOF, fingerprint {:016x}, dt {}",
                opt_.urdf.empty() ? opt_.scene : opt_.urdf, model_->nbodies - 1, model_->nv, model_->fingerprint,
                opt_.dt);
@@ -146,7 +148,40 @@ void SimServer::step_once() {
   step_opt.reselect_every = std::numeric_limits<int>::max();
   const AdaptiveReport& rep = adaptive_step(m, d, st, *ad_, step_opt, opt_.dt);
   active_dofs_.store(rep.active_dofs, std::memory_order_relaxed);
+  just_reset_ = guard_state();
+  if (!just_reset_) ++version_;
+}
+
+// Explicit integration of a floppy body can diverge (a whipping light link, a too-stiff user
+// spring): rather than publish coefficients of a NaN body, go back to the last healthy checkpoint,
+// at rest, and reselect. Copies are into preallocated vectors; logging only on the rare reset.
+bool SimServer::guard_state() {
+  State& st = *state_;
+  const double rate = st.qd.size() ? st.qd.cwiseAbs().maxCoeff() : 0.0;
+  const bool healthy = st.q.allFinite() && std::isfinite(rate) && rate <= opt_.max_joint_rate;
+  if (healthy) {
+    if (++steps_since_checkpoint_ >= opt_.checkpoint_every) {
+      checkpoint_->q = st.q;
+      checkpoint_->t = st.t;
+      steps_since_checkpoint_ = 0;
+    }
+    return false;
+  }
+  const int64_t n = resets_.fetch_add(1, std::memory_order_relaxed) + 1;
+  if (n == 1 || n % 100 == 0)
+    spdlog::warn("sim_server: state diverged at t = {:.4g} (max |q̇| {:.3g} > {:.3g} or non-finite); "
+                 "restored the checkpoint of t = {:.4g} at rest (reset #{}). Lower --dt or the coupling "
+                 "stiffness/damping, or add --budget-dofs headroom.",
+                 st.t, rate, opt_.max_joint_rate, checkpoint_->t, n);
+  const double t = st.t;
+  st.q = checkpoint_->q;
+  st.qd.setZero();
+  st.t = t;
+  forward_kinematics(*model_, *data_, st.q);
+  ad_->steps_since_selection = 1 << 30;   // reselect (and rebuild the frontier caches) next step
+  steps_since_checkpoint_ = 0;
   ++version_;
+  return true;
 }
 
 void SimServer::publish_snapshots() {
@@ -212,9 +247,10 @@ void SimServer::publish_stats(double rate_hz) {
   s.snapshot_age_ms = -1;
   s.messages_out = snapshots_.load();
   s.rejected_messages = bus_.rejected_total();
-  s.n_extra = 2;
-  s.extra_names = {"active_dofs", "snapshot_bytes"};
-  s.extra_values = {static_cast<double>(active_dofs_.load()), static_cast<double>(snapshot_bytes_.load())};
+  s.n_extra = 3;
+  s.extra_names = {"active_dofs", "snapshot_bytes", "resets"};
+  s.extra_values = {static_cast<double>(active_dofs_.load()), static_cast<double>(snapshot_bytes_.load()),
+                    static_cast<double>(resets_.load())};
   bus_.publish(bus::channel::stats("sim_server", opt_.channel_suffix), s);
 }
 
@@ -228,7 +264,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
   while (!stop.load(std::memory_order_relaxed) && (opt_.steps <= 0 || steps_.load() < opt_.steps)) {
     const auto a = Clock::now();
     step_once();
-    publish_snapshots();
+    if (!just_reset_) publish_snapshots();   // after a reset the coefficients are stale
     const auto b = Clock::now();
     const double ms = std::chrono::duration<double, std::milli>(b - a).count();
     step_ms_.store(ms, std::memory_order_relaxed);

@@ -33,6 +33,10 @@ struct SimServerOptions {
   double display_rate_hz = 30;
   int users = 1;                       // users 0..users-1 listened to
   std::string channel_suffix;
+  // Blow-up guard: a non-finite state or a joint rate above this (rad or scene length per scene
+  // time unit) restores the last checkpoint at rest instead of serving a diverged body.
+  double max_joint_rate = 1e3;
+  int checkpoint_every = 500;          // steps between checkpoints of a healthy state
 };
 
 class SimServer {
@@ -48,6 +52,7 @@ class SimServer {
   int active_dofs() const { return active_dofs_.load(std::memory_order_relaxed); }
   int64_t snapshots_published() const { return snapshots_.load(std::memory_order_relaxed); }
   size_t last_snapshot_bytes() const { return snapshot_bytes_.load(std::memory_order_relaxed); }
+  int64_t resets() const { return resets_.load(std::memory_order_relaxed); }
 
  private:
   struct UserSlot;
@@ -68,6 +73,11 @@ class SimServer {
   std::vector<char> active_mask_;
   int64_t version_ = 0;
   int64_t snapshot_errors_ = 0;
+  std::unique_ptr<State> checkpoint_;   // last healthy state (q, t); restored at rest on blow-up
+  int64_t steps_since_checkpoint_ = 0;
+  std::atomic<int64_t> resets_{0};
+  bool just_reset_ = false;
+  bool guard_state();
   std::atomic<int64_t> steps_{0}, snapshots_{0};
   std::atomic<double> step_ms_{0};
   std::atomic<int> active_dofs_{0};

@@ -172,9 +172,11 @@ int main(int argc, char** argv) {
     stop = true;
     for (auto& th : threads) th.join();
     handler.stop();
-    std::printf("summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms\n",
+    std::printf("summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
+                "%lld blow-up resets\n",
                 static_cast<long long>(server.steps_done()), static_cast<long long>(server.snapshots_published()),
-                server.last_snapshot_bytes(), lines ? sum_step_ms / lines : 0.0);
+                server.last_snapshot_bytes(), lines ? sum_step_ms / lines : 0.0,
+                static_cast<long long>(server.resets()));
     for (size_t u = 0; u < couplers.size(); ++u) {
       const auto& k = couplers[u]->counters();
       std::printf("  user %zu: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
