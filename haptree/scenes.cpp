@@ -70,6 +70,7 @@ int add_link(ModelBuilder& b, LinkGen& g, int parent, double parent_len, JointTy
 
 std::shared_ptr<const Model> make_chain(const SceneOptions& o) {
   ModelBuilder b;
+  b.set_gravity(o.gravity);
   LinkGen g(o.seed);
   int prev = 0;
   double prev_len = 0;
@@ -87,6 +88,7 @@ std::shared_ptr<const Model> make_chain(const SceneOptions& o) {
 
 std::shared_ptr<const Model> make_binary_tree(const SceneOptions& o) {
   ModelBuilder b;
+  b.set_gravity(o.gravity);
   LinkGen g(o.seed);
   std::vector<double> len(o.n + 1, 0.3);
   for (int k = 1; k <= o.n; ++k) {
@@ -107,6 +109,7 @@ std::shared_ptr<const Model> make_binary_tree(const SceneOptions& o) {
 
 std::shared_ptr<const Model> make_random_tree(const SceneOptions& o) {
   ModelBuilder b;
+  b.set_gravity(o.gravity);
   LinkGen g(o.seed ? o.seed : 7);
   std::vector<double> len(o.n + 1, 0.3);
   for (int k = 1; k <= o.n; ++k) {
@@ -123,6 +126,7 @@ std::shared_ptr<const Model> make_random_tree(const SceneOptions& o) {
 
 std::shared_ptr<const Model> make_star(const SceneOptions& o) {
   ModelBuilder b;
+  b.set_gravity(o.gravity);
   LinkGen g(o.seed ? o.seed : 11);
   const int hub = add_link(b, g, 0, 0, o.free_root ? JointType::kFree : JointType::kSpherical,
                            o.base_offset, "hub");
@@ -137,6 +141,7 @@ std::shared_ptr<const Model> make_star(const SceneOptions& o) {
 
 std::shared_ptr<const Model> make_protein_like(const SceneOptions& o) {
   ModelBuilder b;
+  b.set_gravity(o.gravity);
   LinkGen g(o.seed);
   const int nbackbone = 343;
   int prev = 0;

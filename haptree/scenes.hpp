@@ -15,6 +15,7 @@ struct SceneOptions {
   bool mixed_joints = false;      // chains, random trees, stars: revolute/prismatic/spherical/fixed mix
   bool free_root = false;         // attach the root body with a free joint instead of a revolute
   Vec3 base_offset = Vec3::Zero();   // where the root joint sits in the world (far-origin tests)
+  Vec3 gravity{0, 0, -9.81};         // m/s²
   BuildOptions build;
 };
 

@@ -30,12 +30,18 @@ int main(int argc, char** argv) {
   app.add_option("--rate-hz", o.rate_hz, "step rate (0 = free-running)")->capture_default_str();
   app.add_option("--display-rate-hz", o.display_rate_hz, "scene state rate")->capture_default_str();
   app.add_option("--users", o.users, "number of users (HAPTREE_USER_FORCE_0..)")->capture_default_str();
+  std::vector<double> gravity;
+  app.add_option("--gravity", gravity,
+                 "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
+                 "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
+      ->delimiter(',')->expected(3);
   app.add_option("--max-joint-rate", o.max_joint_rate,
                  "blow-up guard: a joint rate above this (or a non-finite state) restores the last "
                  "healthy checkpoint at rest and is counted as a reset")->capture_default_str();
   app.add_option("--checkpoint-every", o.checkpoint_every, "steps between checkpoints of a healthy state")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);

@@ -47,12 +47,18 @@ static bool is_procedural(const std::string& s) {
 }
 
 SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options) : bus_(bus), opt_(options) {
+  const bool default_gravity = !opt_.gravity.allFinite();
   if (!opt_.urdf.empty()) {
-    model_ = io::load_urdf(opt_.urdf);
+    io::UrdfOptions uo;
+    if (!default_gravity) uo.gravity = opt_.gravity;
+    model_ = io::load_urdf(opt_.urdf, uo);
   } else if (is_procedural(opt_.scene)) {
     SceneOptions so;
     so.n = opt_.n;
     if (opt_.scene == "random_tree") so.seed = 1;
+    so.gravity = !default_gravity ? opt_.gravity
+                 : opt_.scene == "protein_like" ? Vec3::Zero()
+                                                : Vec3(0, 0, -9.81);
     model_ = make_scene(opt_.scene, so);
   } else {
     molecule_ = std::make_unique<molecule_fwd::Holder>(molecule_fwd::Holder{mol::load_molecular_scene(opt_.scene)});

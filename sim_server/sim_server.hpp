@@ -1,4 +1,6 @@
 #pragma once
+
+#include <limits>
 // SimServer: the paper's simulation loop as a class (STYLE.md §7.1). Loads a scene, steps adaptive DCA
 // dynamics, applies the latest user force of every user, and after every step publishes one coupling
 // snapshot per user with an active grab (HAPTREE_COEFFS_<user>), the scene state at a display rate and
@@ -24,6 +26,11 @@ struct SimServerOptions {
   std::string scene = "protein_like";  // procedural name, or molecule name / PDB path
   int n = 64;                          // bodies for procedural scenes
   std::string urdf;                    // URDF file (overrides --scene)
+  // Gravity of procedural scenes and URDF models; NaN = the default: none for protein_like (it
+  // stands for a molecule, and a 100-m floppy tree falling under gravity whips its light ends until
+  // the explicit step diverges, docs/accuracy_and_stability.md), −9.81 z for the robot scenes.
+  // Molecules always have none.
+  Vec3 gravity = Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
   int budget_dofs = 48;                // budget mode (default)
   double epsilon = 0;                  // > 0: threshold mode with this ε
   int reselect_every = 10;

@@ -51,6 +51,11 @@ int main(int argc, char** argv) {
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
   app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->capture_default_str();
   app.add_option("--dt", so.dt, "sim time step (scene units)")->capture_default_str();
+  std::vector<double> gravity;
+  app.add_option("--gravity", gravity,
+                 "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
+                 "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
+      ->delimiter(',')->expected(3);
   app.add_option("--sim-rate-hz", so.rate_hz, "sim step rate (0 = free-running)")->capture_default_str();
   app.add_option("--duration-s", duration_s, "wall-clock run time")->capture_default_str();
   app.add_option("--users", users, "users (one coupler + one scripted device each, pulling different bodies)")
@@ -78,6 +83,7 @@ int main(int argc, char** argv) {
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
   CLI11_PARSE(app, argc, argv);
+  if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   so.users = users;
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);

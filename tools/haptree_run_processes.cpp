@@ -313,6 +313,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     sim.insert(sim.end(), {"--scene", se.sim.scene, "--n", std::to_string(se.sim.n), "--budget-dofs",
                            std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--rate-hz",
                            fmt_d(se.sim.rate_hz), "--users", std::to_string(se.users)});
+    if (se.sim.gravity.allFinite())
+      sim.insert(sim.end(), {"--gravity", fmt::format("{},{},{}", se.sim.gravity.x(), se.sim.gravity.y(),
+                                                      se.sim.gravity.z())});
     children.push_back({"sim_server", log_dir + "/sim_server.log"});
     children.back().pid = spawn(sim, children.back().log);
     for (int u = 0; u < se.users; ++u) {

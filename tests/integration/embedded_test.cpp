@@ -125,6 +125,27 @@ TEST(Embedded, SingleUserPullGivesFiniteClampedNonzeroForce) {
               static_cast<long long>(c.snapshots_accepted.load()), fmax, s.logs[0].msgs.size());
 }
 
+// The blow-up guard: with gravity on, the 100-m protein-like tree whips its light ends and the
+// explicit step diverges after a few seconds (docs/accuracy_and_stability.md). A joint-rate bound
+// far below what the fall reaches trips the guard within a few hundred steps: every trip restores the
+// last healthy checkpoint at rest, and stepping continues to the end of the run.
+TEST(Embedded, BlowUpGuardRestoresACheckpointInsteadOfServingNaN) {
+  bus::Bus bus("memq://");
+  SimServerOptions so;
+  so.scene = "protein_like";
+  so.gravity = Vec3(0, 0, -9.81);
+  so.max_joint_rate = 2.0;   // rad/s: the fall passes it within ~0.3 s
+  so.checkpoint_every = 50;
+  so.steps = 1500;
+  so.display_rate_hz = 0;
+  SimServer server(bus, so);
+  std::atomic<bool> stop{false};
+  server.run(stop);
+  EXPECT_EQ(server.steps_done(), 1500);
+  EXPECT_GT(server.resets(), 0);
+  std::printf("guard: %lld resets in 1500 steps\n", static_cast<long long>(server.resets()));
+}
+
 TEST(Embedded, TwoUsersPullTwoBodies) {
   Session s(2);
   s.start();
