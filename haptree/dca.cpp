@@ -205,12 +205,13 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
   for (int j = 0; j < NC; ++j) {
     double s = A(j, j);
     for (int k = 0; k < j; ++k) s -= L[j][k] * L[j][k];
-    if (!(s > tol)) {   // reported; a tiny positive pivot is kept, only s <= 0 is replaced
-      ok = false;
-      if (!(s > 0)) s = tol > 0 ? tol : 1e-300;
-    }
-    L[j][j] = std::sqrt(s);
-    const double inv = 1.0 / L[j][j];
+    // A pivot that is not positive relative to the trace is round-off of a singular or indefinite
+    // system (e.g. two coaxial joints around a near-massless rod): that constraint direction is
+    // dropped (pseudo-inverse) and reported, instead of dividing by noise, which overflowed W.
+    const bool drop = !(s > tol);
+    if (drop) ok = false;
+    L[j][j] = drop ? 0.0 : std::sqrt(s);
+    const double inv = drop ? 0.0 : 1.0 / L[j][j];
     for (int i = j + 1; i < NC; ++i) {
       double v = A(i, j);
       for (int k = 0; k < j; ++k) v -= L[i][k] * L[j][k];
@@ -222,7 +223,7 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
     for (int i = 0; i < NC; ++i) {
       double v = T(c, i);
       for (int k = 0; k < i; ++k) v -= L[i][k] * X(k, c);
-      X(i, c) = v / L[i][i];
+      X(i, c) = L[i][i] > 0 ? v / L[i][i] : 0.0;
     }
   W.noalias() = X.transpose() * X;
   return ok;
