@@ -19,6 +19,7 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
+#include "tests/integration/spawn.hpp"
 
 extern char** environ;
 
@@ -28,17 +29,7 @@ namespace {
 constexpr const char* kUrl = "udpm://239.255.76.67:7667?ttl=0";
 
 pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
-  std::vector<char*> argv;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  pid_t pid = -1;
-  if (posix_spawn(&pid, argv[0], &fa, nullptr, argv.data(), environ) != 0) pid = -1;
-  posix_spawn_file_actions_destroy(&fa);
-  return pid;
+  return testing::spawn_logged(args, log);
 }
 
 // Offset that maps the scripted device's grab waypoint (0, 0, 0.01 m) onto the last body of protein_like(32).

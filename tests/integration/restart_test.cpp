@@ -25,6 +25,7 @@
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/safety.hpp"
 #include "haptree/scenes.hpp"
+#include "tests/integration/spawn.hpp"
 #include "tools/tcpq_hub.hpp"
 
 extern char** environ;
@@ -35,17 +36,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
-  std::vector<char*> argv;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  pid_t pid = -1;
-  if (posix_spawn(&pid, argv[0], &fa, nullptr, argv.data(), environ) != 0) pid = -1;
-  posix_spawn_file_actions_destroy(&fa);
-  return pid;
+  return testing::spawn_logged(args, log);
 }
 
 bool alive(pid_t p) {

@@ -23,6 +23,7 @@
 
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
+#include "tests/integration/spawn.hpp"
 
 extern char** environ;
 
@@ -79,17 +80,7 @@ struct TwoNamespaces {
 
 pid_t spawn_in(const std::string& ns, std::vector<std::string> args, const std::string& log) {
   args.insert(args.begin(), {"ip", "netns", "exec", ns});  // ip execs the program: the pid is the program's
-  std::vector<char*> argv;
-  for (const auto& s : args) argv.push_back(const_cast<char*>(s.c_str()));
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  pid_t pid = -1;
-  if (posix_spawnp(&pid, "ip", &fa, nullptr, argv.data(), environ) != 0) pid = -1;
-  posix_spawn_file_actions_destroy(&fa);
-  return pid;
+  return testing::spawn_logged(args, log, /*search_path=*/true);
 }
 
 std::string slurp(const std::string& path) {
