@@ -238,8 +238,8 @@ inline DriftScene drift_scene(const std::string& name) {
     return s;
   }
   if (name == "tumble") {
-    auto m = std::make_shared<Model>(*base);
-    m->gravity.setZero();
+    o.gravity.setZero();   // built without gravity, so the fingerprint matches the model
+    std::shared_ptr<const Model> m = make_protein_like(o);
     State st = clean_state(*m, 11, 0.01);
     DriftScene s{name, "857-DOF protein-like tree, gravity off, joint rates (seed 11) x 0.01 rad/s",
                  m, st, 0};
