@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#ifdef __AVX__
+#include <immintrin.h>
+#endif
 
 namespace haptree::ff {
 
@@ -144,6 +147,12 @@ Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::ve
   sig_ = t.sigma;
   sqeps_.resize(n_);
   for (int a = 0; a < n_; ++a) sqeps_[a] = std::sqrt(t.epsilon[a]);
+  hsig_.resize(n_);
+  e2_.resize(n_);
+  for (int a = 0; a < n_; ++a) {
+    hsig_[a] = 0.5 * sig_[a];    // 0.5σ_i + 0.5σ_j == 0.5(σ_i + σ_j) exactly
+    e2_[a] = 2.0 * sqeps_[a];    // (2√ε_i)(2√ε_j) == 4√ε_i√ε_j exactly
+  }
   build_exclusion_csr(t, ex_adr_, ex_list_);
   // Terms inside one rigid body are constant: evaluate them once here and skip them afterwards.
   EnergyTerms c;
@@ -273,66 +282,192 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
   list_valid_ = true;
 }
 
+// Switched non-bonded pairs of the CSR list, row by row in chunks of kChunk partners, three passes
+// per chunk so the arithmetic vectorises: (1) gather d = x_i − x_j and the pair parameters into
+// contiguous buffers, dropping partners at or beyond r_off; (2) branch-free kernel over the chunk:
+// the switch uses x clamped to [0, 1], so S = 1, dS = 0 exactly inside r_on; with AVX, 4 pairs per
+// instruction, F_i and the energies summed in 4 lanes (round-off-level reordering); (3) scalar
+// scatter of F_j. Without AVX the same kernel runs scalar (GCC does not vectorise std::sqrt unless
+// -fno-math-errno, hence the intrinsics).
+#ifdef __AVX__
+namespace {
+inline double hsum(__m256d v) {
+  alignas(32) double a[4];
+  _mm256_store_pd(a, v);
+  return (a[0] + a[1]) + (a[2] + a[3]);
+}
+}  // namespace
+#endif
+
+template <bool DDD>
+void Evaluator::nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F, double& ec_out,
+                               double& el_out) const {
+  double ec = 0, el = 0;   // locals: accumulating through the references would go via memory
+#ifdef __AVX__
+  __m256d vec = _mm256_setzero_pd(), vel = _mm256_setzero_pd();
+#endif
+  constexpr int kChunk = 256;
+  alignas(64) double dx[kChunk], dy[kChunk], dz[kChunk], qq[kChunk], sg[kChunk], e4[kChunk];
+  alignas(64) double fr[kChunk];   // kChunk: a multiple of 4
+  alignas(64) int jj[kChunk];
+  const double roff2 = o_.r_off * o_.r_off;
+#ifndef __AVX__
+  alignas(64) double ecs[kChunk], els[kChunk];
+#endif
+  const double r_on = o_.r_on, inv_w = 1.0 / (o_.r_off - o_.r_on);
+  const double kq = DDD ? kCoulomb / 40.0 : kCoulomb;
+  const double* hs = hsig_.data();
+  const double* e2 = e2_.data();
+  const double* qa = q_.data();
+  for (int i = 0; i < n_; ++i) {
+    const int b = row_[i], end = row_[i + 1];
+    if (b == end) continue;
+    const Vec3 xi = x[i];
+    const double qi = kq * q_[i], si = hs[i], ei = e2[i];
+    Vec3 Fi = Vec3::Zero();
+#ifdef __AVX__
+    __m256d vfx = _mm256_setzero_pd(), vfy = _mm256_setzero_pd(), vfz = _mm256_setzero_pd();
+#endif
+    for (int c0 = b; c0 < end; c0 += kChunk) {
+      const int mc = std::min(kChunk, end - c0);
+      const int* pj = pj_.data() + c0;
+      // Gather, keeping only partners inside r_off (branch-free compaction: always write, advance
+      // when inside).
+      int m = 0;
+      for (int k = 0; k < mc; ++k) {
+        const int j = pj[k];
+        const Vec3& xj = x[j];
+        const double ddx = xi(0) - xj(0), ddy = xi(1) - xj(1), ddz = xi(2) - xj(2);
+        jj[m] = j;
+        dx[m] = ddx;
+        dy[m] = ddy;
+        dz[m] = ddz;
+        qq[m] = qi * qa[j];
+        sg[m] = si + hs[j];
+        e4[m] = ei * e2[j];
+        m += (ddx * ddx + ddy * ddy + ddz * ddz < roff2) ? 1 : 0;
+      }
+#ifdef __AVX__
+      // std::sqrt may set errno, so GCC keeps it scalar: the kernel is written with AVX intrinsics
+      // (same operations and order as the scalar branch below). Pad to a multiple of 4 with
+      // zero-parameter pairs at r = 1.
+      const int m4 = (m + 3) & ~3;
+      for (int k = m; k < m4; ++k) { dx[k] = 1; dy[k] = dz[k] = qq[k] = sg[k] = e4[k] = 0; }
+      const __m256d one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
+      const __m256d v_on = _mm256_set1_pd(r_on), v_iw = _mm256_set1_pd(inv_w);
+      for (int k = 0; k < m4; k += 4) {
+        const __m256d vx = _mm256_load_pd(dx + k), vy = _mm256_load_pd(dy + k), vz = _mm256_load_pd(dz + k);
+        const __m256d r2 = _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(vx, vx), _mm256_mul_pd(vy, vy)),
+                                         _mm256_mul_pd(vz, vz));
+        const __m256d inv_r2 = _mm256_div_pd(one, r2);
+        const __m256d r = _mm256_sqrt_pd(r2);
+        const __m256d inv_r = _mm256_mul_pd(r, inv_r2);
+        const __m256d vq = _mm256_load_pd(qq + k);
+        __m256d Ec, dEc_r;
+        if (DDD) {
+          Ec = _mm256_mul_pd(vq, inv_r2);
+          dEc_r = _mm256_mul_pd(_mm256_mul_pd(_mm256_set1_pd(-2.0), Ec), inv_r2);
+        } else {
+          Ec = _mm256_mul_pd(vq, inv_r);
+          dEc_r = _mm256_mul_pd(_mm256_sub_pd(zero, Ec), inv_r2);
+        }
+        const __m256d vs = _mm256_load_pd(sg + k), ve = _mm256_load_pd(e4 + k);
+        const __m256d sr2 = _mm256_mul_pd(_mm256_mul_pd(vs, vs), inv_r2);
+        const __m256d s6 = _mm256_mul_pd(_mm256_mul_pd(sr2, sr2), sr2), s12 = _mm256_mul_pd(s6, s6);
+        const __m256d El = _mm256_mul_pd(ve, _mm256_sub_pd(s12, s6));
+        const __m256d dl = _mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(-12.0), s12),
+                                         _mm256_mul_pd(_mm256_set1_pd(6.0), s6));
+        const __m256d dE_r = _mm256_add_pd(dEc_r, _mm256_mul_pd(_mm256_mul_pd(ve, dl), inv_r2));
+        __m256d xs = _mm256_mul_pd(_mm256_sub_pd(r, v_on), v_iw);
+        xs = _mm256_min_pd(_mm256_max_pd(xs, zero), one);
+        const __m256d x2 = _mm256_mul_pd(xs, xs), x3 = _mm256_mul_pd(x2, xs);
+        const __m256d x4 = _mm256_mul_pd(x3, xs), x5 = _mm256_mul_pd(x3, x2);
+        const __m256d S = _mm256_sub_pd(
+            _mm256_add_pd(_mm256_sub_pd(one, _mm256_mul_pd(_mm256_set1_pd(10.0), x3)),
+                          _mm256_mul_pd(_mm256_set1_pd(15.0), x4)),
+            _mm256_mul_pd(_mm256_set1_pd(6.0), x5));
+        const __m256d dS = _mm256_mul_pd(
+            _mm256_sub_pd(_mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(-30.0), x2),
+                                        _mm256_mul_pd(_mm256_set1_pd(60.0), x3)),
+                          _mm256_mul_pd(_mm256_set1_pd(30.0), x4)),
+            v_iw);
+        const __m256d dE = _mm256_add_pd(_mm256_mul_pd(S, dE_r),
+                                         _mm256_mul_pd(_mm256_mul_pd(dS, _mm256_add_pd(Ec, El)), inv_r));
+        const __m256d f = _mm256_sub_pd(zero, dE);
+        _mm256_store_pd(fr + k, f);
+        vfx = _mm256_add_pd(vfx, _mm256_mul_pd(f, vx));
+        vfy = _mm256_add_pd(vfy, _mm256_mul_pd(f, vy));
+        vfz = _mm256_add_pd(vfz, _mm256_mul_pd(f, vz));
+        vec = _mm256_add_pd(vec, _mm256_mul_pd(S, Ec));
+        vel = _mm256_add_pd(vel, _mm256_mul_pd(S, El));
+      }
+      for (int k = 0; k < m; ++k) {   // F_j −= f_ij (partners in one row are distinct)
+        Vec3& Fj = F[jj[k]];
+        Fj(0) -= fr[k] * dx[k];
+        Fj(1) -= fr[k] * dy[k];
+        Fj(2) -= fr[k] * dz[k];
+      }
+#else
+      for (int k = 0; k < m; ++k) {
+        const double r2 = dx[k] * dx[k] + dy[k] * dy[k] + dz[k] * dz[k];
+        const double inv_r2 = 1.0 / r2;
+        const double r = std::sqrt(r2);
+        const double inv_r = r * inv_r2;
+        double Ec, dEc_r;   // E and (dE/dr)/r
+        if (DDD) {
+          Ec = qq[k] * inv_r2;
+          dEc_r = -2.0 * Ec * inv_r2;
+        } else {
+          Ec = qq[k] * inv_r;
+          dEc_r = -Ec * inv_r2;
+        }
+        const double sr2 = sg[k] * sg[k] * inv_r2;
+        const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
+        const double El = e4[k] * (s12 - s6);
+        const double dE_r = dEc_r + e4[k] * (-12.0 * s12 + 6.0 * s6) * inv_r2;
+        double xs = (r - r_on) * inv_w;
+        xs = xs < 0.0 ? 0.0 : xs;
+        xs = xs > 1.0 ? 1.0 : xs;
+        const double x2 = xs * xs, x3 = x2 * xs;
+        const double S = 1 - 10 * x3 + 15 * x3 * xs - 6 * x3 * x2;
+        const double dS = (-30 * x2 + 60 * x3 - 30 * x3 * xs) * inv_w;
+        fr[k] = -(S * dE_r + dS * (Ec + El) * inv_r);
+        ecs[k] = S * Ec;
+        els[k] = S * El;
+      }
+      for (int k = 0; k < m; ++k) {
+        const Vec3 f(fr[k] * dx[k], fr[k] * dy[k], fr[k] * dz[k]);
+        Fi += f;
+        F[jj[k]] -= f;
+        ec += ecs[k];
+        el += els[k];
+      }
+#endif
+    }
+#ifdef __AVX__
+    Fi(0) = hsum(vfx);
+    Fi(1) = hsum(vfy);
+    Fi(2) = hsum(vfz);
+#endif
+    F[i] += Fi;
+  }
+#ifdef __AVX__
+  ec = hsum(vec);
+  el = hsum(vel);
+#endif
+  ec_out += ec;
+  el_out += el;
+}
+
 double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
   if (&x != &x_) x_ = x;   // same size: no allocation
   if (!list_covers(x)) build_list(x);
   if (static_cast<int>(F.size()) != n_) F.resize(n_);
   for (auto& f : F) f.setZero();
   EnergyTerms e;
-  const double roff2 = o_.r_off * o_.r_off;
-  // Per-atom neighbour rows (CSR): x_i and its parameters are loaded once per row. Only the
-  // switch needs r itself; Coulomb (ε = 4r) and LJ are evaluated from r².
-  const double ron2 = o_.r_on * o_.r_on, w = o_.r_off - o_.r_on, inv_w = 1.0 / w;
-  const double kq = o_.distance_dielectric ? kCoulomb / 40.0 : kCoulomb;
-  const bool ddd = o_.distance_dielectric;
   double ec = 0, el = 0;
-  for (int i = 0; i < n_; ++i) {
-    const int b = row_[i], end = row_[i + 1];
-    if (b == end) continue;
-    const Vec3 xi = x[i];
-    const double qi = kq * q_[i], si = sig_[i], ei = sqeps_[i];
-    Vec3 Fi = Vec3::Zero();
-    for (int p = b; p < end; ++p) {
-      const int j = pj_[p];
-      const Vec3 d = xi - x[j];
-      const double r2 = d.squaredNorm();
-      if (r2 >= roff2) continue;
-      const double inv_r2 = 1.0 / r2;
-      double Ec, dEc_r;   // E and (dE/dr)/r
-      if (ddd) {
-        Ec = qi * q_[j] * inv_r2;
-        dEc_r = -2.0 * Ec * inv_r2;
-      } else {
-        const double inv_r = std::sqrt(inv_r2);
-        Ec = qi * q_[j] * inv_r;
-        dEc_r = -Ec * inv_r2;
-      }
-      const double sg = 0.5 * (si + sig_[j]);
-      const double sr2 = sg * sg * inv_r2;
-      const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
-      const double e4 = 4.0 * ei * sqeps_[j];
-      const double El = e4 * (s12 - s6);
-      double dE_r = dEc_r + e4 * (-12.0 * s12 + 6.0 * s6) * inv_r2;
-      double Etot = Ec + El;
-      if (r2 > ron2) {
-        const double r = std::sqrt(r2);
-        const double xs = (r - o_.r_on) * inv_w;
-        const double x2 = xs * xs, x3 = x2 * xs;
-        const double S = 1 - 10 * x3 + 15 * x3 * xs - 6 * x3 * x2;
-        const double dS = (-30 * x2 + 60 * x3 - 30 * x3 * xs) * inv_w;
-        dE_r = S * dE_r + dS * Etot / r;
-        ec += S * Ec;
-        el += S * El;
-      } else {
-        ec += Ec;
-        el += El;
-      }
-      const Vec3 f = -dE_r * d;
-      Fi += f;
-      F[j] -= f;
-    }
-    F[i] += Fi;
-  }
+  if (o_.distance_dielectric) nonbonded_rows<true>(x, F, ec, el);
+  else nonbonded_rows<false>(x, F, ec, el);
   e.coulomb = ec;
   e.lj = el;
   for (const auto& p : p14_act_) {

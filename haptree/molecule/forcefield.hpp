@@ -70,12 +70,15 @@ class Evaluator {
  private:
   void build_list(const std::vector<Vec3>& x);
   bool list_covers(const std::vector<Vec3>& x) const;
+  template <bool DDD>
+  void nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F, double& ec, double& el) const;
   bool regions_active_ = false;
   NonbondedOptions o_;
   int n_;
   std::vector<int> body_;
   std::vector<Vec3> local_;
   std::vector<double> q_, sig_, sqeps_;
+  std::vector<double> hsig_, e2_;   // 0.5σ and 2√ε per atom (pair kernel: σ_ij = sum, 4ε_ij = product)
   std::vector<int> ex_adr_, ex_list_;   // CSR of excluded partners (1-2, 1-3, 1-4), sorted
   std::vector<mol::Pair14> p14_;
   std::vector<mol::Torsion> tors_;
