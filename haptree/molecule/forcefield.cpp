@@ -262,10 +262,13 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
         const int y = c[1] + dy;
         if (y < 0 || y >= nc[1]) continue;
         for (int dx = -1; dx <= 1; ++dx) {
+          // Half shell: each pair once, from the cell with the smaller offset (own cell: j > i).
+          const int off = (dz * 3 + dy) * 3 + dx;
+          if (off < 0) continue;
           const int xx = c[0] + dx;
           if (xx < 0 || xx >= nc[0]) continue;
           for (int j = cell_head_[(z * nc[1] + y) * nc[0] + xx]; j >= 0; j = cell_next_[j]) {
-            if (j <= i || key_[j] == key_[i]) continue;
+            if ((off == 0 && j <= i) || key_[j] == key_[i]) continue;
             if ((x[i] - x[j]).squaredNorm() >= rl2) continue;
             if (std::binary_search(eb, ee, j)) continue;
             if (np == pj_.size()) pj_.resize(2 * np + 1024);   // only beyond 2x the setup size
