@@ -1,5 +1,6 @@
 #include "haptree/dca.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 namespace haptree {
@@ -194,9 +195,10 @@ namespace {
 
 // W = T (Tᵀ Φ̂ T)^{-1} Tᵀ = Xᵀ X with X = L^{-1} Tᵀ, L the Cholesky factor of the nc × nc joint
 // system (hand-rolled for fixed nc: Eigen's generic triangular solve is not inlined at this size).
-// Returns false when a pivot is not positive relative to the trace (a modelling error, §14.4).
+// X (nc × 6, column-major) is written to Xout for the block assembly. Returns false when a pivot
+// is not positive relative to the trace (a modelling error, §14.4).
 template <int NC>
-bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
+bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W, double* Xout) {
   const Eigen::Matrix<double, 6, NC> T = Tdyn;
   const Eigen::Matrix<double, NC, NC> A = T.transpose() * Phat * T;
   const double tol = 1e-13 * A.trace();
@@ -218,7 +220,7 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
       L[i][j] = v * inv;
     }
   }
-  Eigen::Matrix<double, NC, 6> X;
+  Eigen::Map<Eigen::Matrix<double, NC, 6>> X(Xout);
   for (int c = 0; c < 6; ++c)
     for (int i = 0; i < NC; ++i) {
       double v = T(c, i);
@@ -233,8 +235,10 @@ bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W) {
 
 namespace {
 
-// The joint part of §5.2: W, τ̃ and β of `node` from its children's Φ and b.
-void assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+// The joint part of §5.2: W, τ̃ and β of `node` from its children's Φ and b. Returns nc, the
+// number of constraint directions; X = L⁻¹Tᵀ (nc × 6, W = XᵀX) goes to Xout (36 doubles).
+int assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& tau,
+                   double* Xout) noexcept {
   const auto& t = m.tree;
   const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
   const int j = t.slot_j[node], k = t.slot_k[node];
@@ -244,14 +248,14 @@ void assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& ta
   JointMat S, T, D;
   joint_subspaces(m, d, J, S, T, D);
   Mat6& W = d.W[node];
-  const int nc = static_cast<int>(T.cols());
+  int nc = static_cast<int>(T.cols());
   bool ok = true;
   switch (nc) {
     case 0: W.setZero(); break;
-    case 3: ok = constraint_inverse<3>(Phat, T, W); break;
-    case 5: ok = constraint_inverse<5>(Phat, T, W); break;
-    case 6: ok = constraint_inverse<6>(Phat, T, W); break;
-    default: W.setZero(); ok = false;   // no joint type has 1, 2 or 4 constraints
+    case 3: ok = constraint_inverse<3>(Phat, T, W, Xout); break;
+    case 5: ok = constraint_inverse<5>(Phat, T, W, Xout); break;
+    case 6: ok = constraint_inverse<6>(Phat, T, W, Xout); break;
+    default: W.setZero(); ok = false; nc = 0;   // no joint type has 1, 2 or 4 constraints
   }
   if (!ok) {
     ++d.diag.singular_pivots;
@@ -266,21 +270,77 @@ void assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& ta
     taut.setZero();
   }
   d.beta[node] = W * (d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
+  return nc;
 }
 
-}  // namespace
+void assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  double X[36];
+  assemble_joint(m, d, node, tau, X);
+}
 
-void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+// Φ_C block (c, c2) = base − Z_cᵀ Z_c2, written upper-triangle-first for a diagonal block
+// (symmetric by construction; base averaged with its transpose).
+template <int NC, typename Base>
+inline void write_diag_block(BlockMap out, const Base& base,
+                             const Eigen::Matrix<double, NC, 6>& Z) {
+  for (int c = 0; c < 6; ++c)
+    for (int r = 0; r <= c; ++r) {
+      double s = 0.5 * (base(r, c) + base(c, r));
+      for (int q = 0; q < NC; ++q) s -= Z(q, r) * Z(q, c);
+      out(r, c) = s;
+      out(c, r) = s;
+    }
+}
+
+// Blocks of Φ_C for nc constraint directions: with Z_x = X Φ(P, j, x) for P's surviving handles
+// and Z_x = −X Φ(Q, k, x) for Q's, Φ_C(x, y) = Φ_child(x, y) − Z_xᵀ Z_y (Φ_child = 0 across
+// children): Φ_xj W Φ_jy = (XΦ_jx)ᵀ(XΦ_jy) without forming two 6×6 products per block.
+constexpr int kMaxZHandles = 8;
+
+template <int NC>
+void assemble_blocks(const Model& m, Data& d, int node, const double* Xbuf) {
+  using ZMat = Eigen::Matrix<double, NC, 6>;
   const auto& t = m.tree;
-  d.cluster_live[node] = 0;
-  assemble_joint(m, d, node, tau);
+  const int P = t.P[node], Q = t.Q[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+  const Eigen::Map<const ZMat> X(Xbuf);
+  ZMat Z[kMaxZHandles];
+  int side[kMaxZHandles], slot[kMaxZHandles];
+  int n = 0;
+  for (int i = 0; i < hP; ++i)
+    if (i != j) {
+      Z[n].noalias() = X * d.Phi(P, hP, j, i);
+      side[n] = P;
+      slot[n++] = i;
+    }
+  for (int l = 0; l < hQ; ++l)
+    if (l != k) {
+      Z[n].noalias() = -(X * d.Phi(Q, hQ, k, l));
+      side[n] = Q;
+      slot[n++] = l;
+    }
+  for (int c = 0; c < hC; ++c) {
+    const int hs = side[c] == P ? hP : hQ;
+    write_diag_block<NC>(d.Phi(node, hC, c, c), d.Phi(side[c], hs, slot[c], slot[c]), Z[c]);
+    for (int c2 = c + 1; c2 < hC; ++c2) {
+      BlockMap out = d.Phi(node, hC, c, c2);
+      if (side[c2] == side[c])
+        out.noalias() = d.Phi(side[c], hs, slot[c], slot[c2]) - Z[c].transpose() * Z[c2];
+      else
+        out.noalias() = -(Z[c].transpose() * Z[c2]);
+      d.Phi(node, hC, c2, c) = out.transpose();
+    }
+  }
+}
+
+// The previous general form (two 6×6 products per block), for nodes with many handles.
+void assemble_blocks_general(const Model& m, Data& d, int node) {
+  const auto& t = m.tree;
   const int P = t.P[node], Q = t.Q[node];
   const int j = t.slot_j[node], k = t.slot_k[node];
   const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
   const Mat6& W = d.W[node];
-  const Vec6& beta = d.beta[node];
-
-  // Surviving handles: C slots 0..hP-2 come from P' in order, then Q'.
   int ci = 0;
   for (int i = 0; i < hP; ++i) {
     if (i == j) continue;
@@ -302,7 +362,6 @@ void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau)
       d.Phi(node, hC, cl, ci) = blk.transpose();
       ++cl;
     }
-    d.b(node, ci) = d.b(P, i) - d.Phi(P, hP, i, j) * beta;
     ++ci;
   }
   int cl = hP - 1;
@@ -318,9 +377,46 @@ void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau)
       if (cl2 != cl) d.Phi(node, hC, cl2, cl) = blk.transpose();
       ++cl2;
     }
-    d.b(node, cl) = d.b(Q, l) + d.Phi(Q, hQ, l, k) * beta;
     ++cl;
   }
+}
+
+}  // namespace
+
+void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  const auto& t = m.tree;
+  d.cluster_live[node] = 0;
+  double X[36];
+  const int nc = assemble_joint(m, d, node, tau, X);
+  const int P = t.P[node], Q = t.Q[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q], hC = t.handle_num[node];
+
+  if (hC <= 2) {
+    switch (nc) {
+      case 0:
+        std::fill(X, X + 36, 0.0);
+        assemble_blocks<1>(m, d, node, X);
+        break;
+      case 3: assemble_blocks<3>(m, d, node, X); break;
+      case 5: assemble_blocks<5>(m, d, node, X); break;
+      default: assemble_blocks<6>(m, d, node, X); break;
+    }
+  } else {
+    assemble_blocks_general(m, d, node);
+  }
+
+  // Surviving handles: C slots 0..hP-2 come from P' in order, then Q'.
+  const Vec6& beta = d.beta[node];
+  int ci = 0;
+  for (int i = 0; i < hP; ++i)
+    if (i != j) {
+      d.b(node, ci++).noalias() = d.b(P, i) - d.Phi(P, hP, i, j) * beta;
+    }
+  for (int l = 0; l < hQ; ++l)
+    if (l != k) {
+      d.b(node, ci++).noalias() = d.b(Q, l) + d.Phi(Q, hQ, l, k) * beta;
+    }
 }
 
 namespace {
