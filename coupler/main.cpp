@@ -3,16 +3,10 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
-#include <csignal>
 #include <vector>
 
 #include "coupler/coupler.hpp"
 #include "haptree/bus/cli.hpp"
-
-namespace {
-std::atomic<bool> g_stop{false};
-void on_signal(int) { g_stop = true; }
-}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
@@ -37,8 +31,7 @@ int main(int argc, char** argv) {
   o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
   o.shm = b.shm;
   o.channel_suffix = b.channel_suffix;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
+  std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);

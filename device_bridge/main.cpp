@@ -3,17 +3,11 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
-#include <csignal>
 #include <string>
 #include <vector>
 
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/cli.hpp"
-
-namespace {
-std::atomic<bool> g_stop{false};
-void on_signal(int) { g_stop = true; }
-}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
@@ -39,8 +33,7 @@ int main(int argc, char** argv) {
   o.shm = b.shm;
   o.mirror_rate_hz = b.mirror_rate_hz;
   o.channel_suffix = b.channel_suffix;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
+  std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);

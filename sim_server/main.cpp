@@ -3,15 +3,9 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
-#include <csignal>
 
 #include "haptree/bus/cli.hpp"
 #include "sim_server/sim_server.hpp"
-
-namespace {
-std::atomic<bool> g_stop{false};
-void on_signal(int) { g_stop = true; }
-}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree sim_server: adaptive DCA dynamics + coupling snapshots over LCM"};
@@ -43,8 +37,7 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
+  std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);

@@ -3,6 +3,9 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+
+#include <atomic>
+#include <csignal>
 #include <string>
 
 namespace haptree::bus {
@@ -26,6 +29,15 @@ inline void add_bus_options(CLI::App& app, BusOptions& o) {
                  "rate at which shared-memory channels are republished on LCM for lcm-logger (0: off)")
       ->check(CLI::Range(0.0, 10000.0))
       ->capture_default_str();
+}
+
+// SIGINT/SIGTERM set the returned flag, which the process's run loop polls.
+inline std::atomic<bool>& install_stop_signals() {
+  static std::atomic<bool> stop{false};
+  auto on_signal = [](int) { stop = true; };
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
+  return stop;
 }
 
 }  // namespace haptree::bus

@@ -32,23 +32,11 @@ pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
   return testing::spawn_logged(args, log);
 }
 
-// Offset that maps the scripted device's grab waypoint (0, 0, 0.01 m) onto the last body of protein_like(32).
-std::vector<std::string> offset_args(int* body) {
-  SceneOptions so;
-  so.n = 32;
-  auto m = make_scene("protein_like", so);
-  Data d(*m);
-  State s(*m);
-  forward_kinematics(*m, d, s.q);
-  *body = m->nbodies - 1;
-  const Vec3 o = d.r[*body] - 10.0 * Vec3(0, 0, 0.01);
-  return {"--offset", std::to_string(o.x()), std::to_string(o.y()), std::to_string(o.z())};
-}
 
 // Runs sim_server, coupler and device_bridge; listens to FEEDBACK on LCM (the shm link is mirrored).
 int run_three(int out_fd, bool shm) {
   int body = 0;
-  const auto off = offset_args(&body);
+  const auto off = testing::grab_offset_args(&body);
   const std::string dir = ::testing::TempDir();
   std::vector<std::string> link = shm ? std::vector<std::string>{"--shm", "--mirror-rate-hz", "500"}
                                       : std::vector<std::string>{};

@@ -66,15 +66,8 @@ TEST(Restart, ServerKilledMidSession) {
   const std::string url = hub.url();
   const std::string suffix = "_K" + std::to_string(::getpid());
   const std::string dir = ::testing::TempDir();
-  // Offset that maps the scripted grab waypoint (0, 0, 0.01 m) onto the last body of protein_like(32).
-  SceneOptions so;
-  so.n = 32;
-  auto m = make_scene("protein_like", so);
-  Data d(*m);
-  State s(*m);
-  forward_kinematics(*m, d, s.q);
-  const int body = m->nbodies - 1;
-  const Vec3 o = d.r[body] - 10.0 * Vec3(0, 0, 0.01);
+  int body = 0;
+  const Vec3 o = testing::grab_offset_protein32(&body);
   const std::vector<std::string> common = {"--lcm-url", url, "--channel-suffix", suffix};
   std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--scene", "protein_like", "--n", "32", "--rate-hz", "1000"};
   sim.insert(sim.end(), common.begin(), common.end());

@@ -90,25 +90,13 @@ std::string slurp(const std::string& path) {
   return ss.str();
 }
 
-// Same grab geometry as processes_test.cpp: the scripted grab waypoint lands on the last body of protein_like(32).
-std::vector<std::string> offset_args(int* body) {
-  SceneOptions so;
-  so.n = 32;
-  auto m = make_scene("protein_like", so);
-  Data d(*m);
-  State s(*m);
-  forward_kinematics(*m, d, s.q);
-  *body = m->nbodies - 1;
-  const Vec3 o = d.r[*body] - 10.0 * Vec3(0, 0, 0.01);
-  return {"--offset", std::to_string(o.x()), std::to_string(o.y()), std::to_string(o.z())};
-}
 
 TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
   TwoNamespaces ns;
   ASSERT_TRUE(ns.error.empty()) << ns.error;
 
   int body = 0;
-  const auto off = offset_args(&body);
+  const auto off = testing::grab_offset_args(&body);
   const std::string dir = ::testing::TempDir();
   const std::string mf = std::to_string(kMaxForceN);
   std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--lcm-url", kUrl, "--scene", "protein_like", "--n", "32",
