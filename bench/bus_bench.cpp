@@ -55,7 +55,7 @@ void print(const Result& r) {
 
 lcmt_device_state make_state(int64_t k) {
   lcmt_device_state m{};
-  stamp(m);
+  stamp(m, 7);
   m.seq = k;
   m.position_m[0] = 1e-3 * static_cast<double>(k % 100);
   m.orientation[0] = 1;
@@ -99,7 +99,7 @@ void shm_echo_side(const std::string& state_ch, const std::string& fb_ch, int64_
   const auto give_up = Clock::now() + std::chrono::seconds(120);
   while (Clock::now() < give_up) {
     if (in.read_msg(st) != ShmRead::kNew) continue;
-    stamp(fb);
+    stamp(fb, 7);
     fb.seq = st.seq;
     fb.echo_device_seq = st.seq;
     fb.force_n[0] = -st.position_m[0];
@@ -167,7 +167,7 @@ struct Echo {
   Bus* bus;
   lcmt_feedback fb{};
   void on_state(const lcmt_device_state& st) {
-    stamp(fb);
+    stamp(fb, 7);
     fb.seq = st.seq;
     fb.echo_device_seq = st.seq;
     fb.force_n[0] = -st.position_m[0];

@@ -3,10 +3,13 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <cmath>
 #include <limits>
+#include <stdexcept>
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
+#include "haptree/bus/pacing.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
@@ -25,8 +28,26 @@ WorkspaceMapping coupler_mapping(const CouplerOptions& o) {
   return m;
 }
 
+double user_force_limit(const CouplerOptions& o) noexcept { return kUserForceMargin * o.max_force_n / o.force_scale; }
+
+void check_coupler_options(const CouplerOptions& o) {
+  auto fail = [](const std::string& what) { throw std::invalid_argument("coupler: " + what); };
+  auto pos = [](double v) { return std::isfinite(v) && v > 0; };
+  if (!pos(o.rate_hz)) fail("--rate-hz must be a positive rate, got " + std::to_string(o.rate_hz));
+  if (!pos(o.stiffness)) fail("--stiffness must be positive and finite");
+  if (!(std::isfinite(o.damping) && o.damping >= 0)) fail("--damping must be >= 0 and finite");
+  if (!pos(o.position_scale)) fail("--position-scale must be positive and finite");
+  if (!pos(o.force_scale)) fail("--force-scale must be positive and finite");
+  if (!o.offset.allFinite()) fail("--offset must be finite");
+  if (!pos(o.max_force_n)) fail("--max-force-n must be positive and finite");
+  if (!pos(o.stale_after_s)) fail("--stale-after-s must be positive and finite");
+  if (!pos(o.user_force_rate_hz)) fail("--user-force-rate-hz must be positive and finite");
+  if (!pos(o.max_device_position_m)) fail("--max-device-position-m must be positive and finite");
+  if (o.user < 0 || o.device < 0) fail("--user and --device must be >= 0");
+}
+
 CouplingStatus coupler_feedback(const CouplerOptions& o, const CouplingSnapshot& snap, const CouplingInputs& in,
-                                CouplingWorkspace& ws, Vec6& f_u, Vec6& f_feed, Vec3& force_n) noexcept {
+                                CouplingWorkspace& ws, Vec6& f_u, Vec6& f_feed, Vec3& force_n, bool* clamped) noexcept {
   const WorkspaceMapping map = coupler_mapping(o);
   const Vec3 x_h = map.device_to_scene_point(in.position_m);
   const Vec3 xd_h = map.device_to_scene_velocity(in.velocity_mps);
@@ -34,6 +55,10 @@ CouplingStatus coupler_feedback(const CouplerOptions& o, const CouplingSnapshot&
   vc.k_s = o.stiffness;
   vc.b_s = o.damping;
   f_u = vc.user_force(x_h, xd_h, snap.grabs[0].point, snap.grabs[0].velocity);
+  // Scene-side clamp (moment part is zero: a point force at the grab point).
+  bool c = false;
+  f_u.tail<3>() = clamp_norm(f_u.tail<3>(), user_force_limit(o), &c);
+  if (clamped) *clamped = c;
   const CouplingStatus st = coupling_forces(snap, &f_u, ws, &f_feed);
   force_n = map.scene_to_device_force(f_feed.tail<3>());
   return st;
@@ -53,7 +78,10 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
       opt_(options),
       map_(coupler_mapping(options)),
       safety_(ForceLimits{options.max_force_n, 0.0}, watchdog_params(options)),
-      ws_(options.max_nodes, options.max_slots) {
+      ws_((check_coupler_options(options), options.max_nodes), options.max_slots) {
+  instance_id_ = bus::new_instance_id();
+  server_lock_ = bus::OriginLock(opt_.stale_after_s);
+  device_lock_ = bus::OriginLock(opt_.stale_after_s);
   vc_.k_s = opt_.stiffness;
   vc_.b_s = opt_.damping;
   locked_fingerprint_ = opt_.model_fingerprint;
@@ -66,10 +94,13 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
   if (opt_.shm) {
     shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose);
     shm_feedback_ = std::make_unique<bus::ShmWriter>(ch_feedback_);
+    shm_feedback_check_ = std::make_unique<bus::ShmReader>(ch_feedback_);
   } else {
     bus_.subscribe<lcmt_device_state>(ch_pose, [this](const lcmt_device_state& m, const std::string&) {
+      const double t = since(kEpoch);
+      if (!take_pose(m, t)) return;
       pose_box_.write(m);
-      pose_recv_s_.store(since(kEpoch), std::memory_order_release);
+      pose_recv_s_.store(t, std::memory_order_release);
     });
   }
   bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_);
@@ -78,51 +109,156 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
       "force, clamp {} N, {} Hz, link {}",
       opt_.user, opt_.device, opt_.stiffness, opt_.damping, opt_.position_scale, opt_.offset.x(), opt_.offset.y(),
       opt_.offset.z(), opt_.force_scale, opt_.max_force_n, opt_.rate_hz, opt_.shm ? "shm" : bus_.url());
+  spdlog::info("coupler {}: instance {:016x}; stale after {} s; user force clamped to {} scene units "
+               "(2 x max_force_n / force_scale); device positions beyond {} m refused; {}",
+               opt_.user, static_cast<uint64_t>(instance_id_), opt_.stale_after_s, user_force_limit(opt_),
+               opt_.max_device_position_m,
+               opt_.model_fingerprint ? fmt::format("expecting model fingerprint {:016x}", opt_.model_fingerprint)
+                                      : std::string("no --model-fingerprint: locking onto the first model heard"));
+}
+
+// The pose path (handler thread for LCM, loop for shm): one device instance at a time (a new one only
+// after the old went silent for stale_after_s: a device restart), newest seq only, and sane values. A
+// refused pose is not taken: its age grows and the watchdog takes the force away. No logging here.
+bool Coupler::take_pose(const lcmt_device_state& m, double now_s) {
+  const bus::Origin o = device_lock_.check(m.instance_id, now_s);
+  if (!bus::accepted(o)) {
+    c_.pose_rejected.fetch_add(1, std::memory_order_relaxed);
+    if (o == bus::Origin::kRefused || o == bus::Origin::kInvalid) refused_device_.fetch_add(1, std::memory_order_relaxed);
+    return false;
+  }
+  if (o == bus::Origin::kTakeover) {
+    c_.device_restarts.fetch_add(1, std::memory_order_relaxed);
+    newest_pose_seq_ = -1;
+  }
+  if (m.seq <= newest_pose_seq_) {   // reordered: an older reading of the same device
+    c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
+    return false;
+  }
+  bool sane = true;
+  for (int i = 0; i < 3; ++i) sane &= std::isfinite(m.position_m[i]) && std::isfinite(m.linear_velocity_mps[i]);
+  for (int i = 0; i < 4; ++i) sane &= std::isfinite(m.orientation[i]);
+  sane = sane && Vec3(m.position_m[0], m.position_m[1], m.position_m[2]).norm() <= opt_.max_device_position_m;
+  if (!sane) {
+    c_.pose_rejected.fetch_add(1, std::memory_order_relaxed);
+    bad_pose_value_.store(true, std::memory_order_relaxed);
+    return false;
+  }
+  newest_pose_seq_ = m.seq;
+  return true;
+}
+
+// Warnings about refused inputs, once each, from the loop's stats tick (never inside the computation).
+void Coupler::report_problems() {
+  if (!warned_device_ && refused_device_.load() > 0) {
+    warned_device_ = true;
+    spdlog::warn("coupler {}: refused {} DEVICE_STATE message(s) from a device instance other than the one "
+                 "this coupler follows ({:016x}) while it is live: two device_bridges on --device {}, or a stray "
+                 "publisher. They cannot press or release the grab.",
+                 opt_.user, refused_device_.load(), static_cast<uint64_t>(device_lock_.locked()), opt_.device);
+  }
+  if (!warned_bad_pose_ && bad_pose_value_.load()) {
+    warned_bad_pose_ = true;
+    spdlog::warn("coupler {}: refused a device position that is non-finite or farther than "
+                 "--max-device-position-m {} m from the device origin (a glitch); the watchdog zeroes the force "
+                 "until sane positions arrive",
+                 opt_.user, opt_.max_device_position_m);
+  }
+  if (c_.device_restarts.load() != reported_device_restarts_) {
+    reported_device_restarts_ = c_.device_restarts.load();
+    spdlog::info("coupler {}: now following device instance {:016x} (the previous one went silent)", opt_.user,
+                 static_cast<uint64_t>(device_lock_.locked()));
+  }
+  if (!warned_writer_ && c_.other_feedback_writer.load() > 0) {
+    warned_writer_ = true;
+    spdlog::warn("coupler {}: another coupler (instance {:016x}) writes FEEDBACK for device {} too: two couplers "
+                 "on one device. The device_bridge follows only one of them; stop the other.",
+                 opt_.user, static_cast<uint64_t>(refused_writer_.load()), opt_.device);
+  }
+  if (!warned_clamp_ && c_.user_force_clamps.load() > 0) {
+    warned_clamp_ = true;
+    spdlog::warn("coupler {}: the user force reached the scene-side limit {} (2 x --max-force-n / --force-scale) "
+                 "and was clamped (counted in clamp_events)",
+                 opt_.user, user_force_limit(opt_));
+  }
 }
 
 Coupler::~Coupler() = default;
 
 int64_t Coupler::rejected_messages() const {
-  return c_.foreign_rejected.load() + c_.stale_rejected.load() + c_.bad_rejected.load() + bus_.rejected_total() +
+  return c_.foreign_rejected.load() + c_.stale_rejected.load() + c_.bad_rejected.load() + c_.duplicate_rejected.load() +
+         c_.implausible_rejected.load() + c_.pose_rejected.load() + bus_.rejected_total() +
          (shm_pose_ ? shm_pose_->rejected() : 0);
 }
 
-// Bus handler thread: decode, check, convert into the back slot, publish (allocation allowed here).
+// No server steps faster than this: a version may advance by at most kMaxStepRate x the time since the
+// previous accepted snapshot (+ kVersionSlack). 1 MHz is far above any real step rate (>= 1 µs per step);
+// a replayed or corrupted version such as 5e12 is far beyond it.
+constexpr double kMaxStepRate = 1e6;
+constexpr int64_t kVersionSlack = 1000;
+
+// Bus handler thread: decode, check (model, server instance, version), convert into the back slot, publish
+// (allocation allowed here).
 void Coupler::on_snapshot(const void* data, uint32_t size) {
   if (bus::decode_checked(data, size, snap_msg_) != bus::DecodeResult::kOk) {
     c_.bad_rejected.fetch_add(1, std::memory_order_relaxed);
     return;
   }
+  const double now = since(kEpoch);
   const uint64_t fp = bus::fingerprint_from_wire(snap_msg_.model_fingerprint);
   uint64_t locked = locked_fingerprint_.load();
   if (locked == 0) {
     locked_fingerprint_ = fp;
     locked = fp;
-    spdlog::info("coupler {}: locked onto model fingerprint {:016x}", opt_.user, fp);
+    spdlog::info("coupler {}: locked onto model fingerprint {:016x}, the first one heard (name the model with "
+                 "--model-fingerprint to refuse any other)", opt_.user, fp);
   }
   if (fp != locked) {
     c_.foreign_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_foreign_) spdlog::warn("coupler {}: ignoring snapshots of model {:016x} (mine: {:016x})", opt_.user, fp, locked);
+    if (!warned_foreign_)
+      spdlog::warn("coupler {}: refusing snapshots of model {:016x}: this coupler {} model {:016x}. Another scene "
+                   "is served on this channel: check the sim_server's --scene/--n/--urdf and --channel-suffix.",
+                   opt_.user, fp, opt_.model_fingerprint ? "expects (--model-fingerprint)" : "locked onto", locked);
     warned_foreign_ = true;
     return;
   }
-  // A lower version after the stream went silent (older than the watchdog's stale time) is a restarted
-  // server (its step counter starts again): accept it. Within a live stream, older versions are ignored.
-  const double last_recv = snapshot_recv_s_.load(std::memory_order_acquire);
-  const bool restarted = last_recv >= 0 && since(kEpoch) - last_recv > opt_.stale_after_s;
-  if (restarted && snap_msg_.version <= newest_version_) {
-    spdlog::info("coupler {}: snapshot stream resumed at version {} (was {}): new server", opt_.user,
-                 snap_msg_.version, newest_version_);
+  // One server instance at a time: a new one only after the old stream went silent for stale_after_s (by
+  // then the watchdog has taken the force away): that is a restart, whatever the versions. Older versions
+  // of the same instance are reordered or duplicated datagrams: ignored, counted, no log.
+  const bus::Origin o = server_lock_.check(snap_msg_.instance_id, now);
+  if (o == bus::Origin::kPrevious) {
+    c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  if (!bus::accepted(o)) {
+    c_.duplicate_rejected.fetch_add(1, std::memory_order_relaxed);
+    if (!warned_duplicate_)
+      spdlog::warn("coupler {}: refusing snapshots from server instance {:016x}: server instance {:016x} is live "
+                   "on the same channel (two sim_servers for one user, or a replay). Stop one of them.",
+                   opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), static_cast<uint64_t>(server_lock_.locked()));
+    warned_duplicate_ = true;
+    return;
+  }
+  if (o == bus::Origin::kTakeover) {
+    spdlog::info("coupler {}: new server instance {:016x} (the previous one was silent for more than {} s), "
+                 "resuming at version {}", opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), opt_.stale_after_s,
+                 snap_msg_.version);
     newest_version_ = -1;
     c_.restarts.fetch_add(1, std::memory_order_relaxed);
   }
+  if (snap_msg_.version < 0 ||
+      (newest_version_ >= 0 &&
+       static_cast<double>(snap_msg_.version - newest_version_) > kVersionSlack + kMaxStepRate * (now - newest_accept_s_))) {
+    c_.implausible_rejected.fetch_add(1, std::memory_order_relaxed);
+    if (!warned_implausible_)
+      spdlog::warn("coupler {}: refusing snapshot version {} after version {} {:.3f} s earlier: no server steps that "
+                   "fast (a replayed or corrupted message)", opt_.user, snap_msg_.version, newest_version_,
+                   now - newest_accept_s_);
+    warned_implausible_ = true;
+    return;
+  }
   if (snap_msg_.version <= newest_version_) {
     c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_stale_)
-      spdlog::warn("coupler {}: ignoring snapshot version {} (have {}); a restarted server is accepted "
-                   "once its versions pass the old ones",
-                   opt_.user, snap_msg_.version, newest_version_);
-    warned_stale_ = true;
     return;
   }
   CouplingSnapshot& back = snap_box_.back();
@@ -132,6 +268,7 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
     return;
   }
   newest_version_ = snap_msg_.version;
+  newest_accept_s_ = now;
   snap_box_.publish();
   snapshot_recv_s_.store(since(kEpoch), std::memory_order_release);
   c_.last_snapshot_utime.store(bus::now_utime(), std::memory_order_relaxed);
@@ -144,7 +281,11 @@ bool Coupler::iterate(double now) {
   const CouplingSnapshot& snap = snap_box_.front();
   // device pose
   if (shm_pose_) {
-    if (shm_pose_->read_msg(pose_) == bus::ShmRead::kNew) pose_time_s_ = now;
+    // decode into a scratch message: a refused pose must not replace the last good one
+    if (shm_pose_->read_msg(shm_pose_msg_) == bus::ShmRead::kNew && take_pose(shm_pose_msg_, now)) {
+      pose_ = shm_pose_msg_;
+      pose_time_s_ = now;
+    }
   } else if (pose_box_.update()) {
     pose_ = pose_box_.front();
     pose_time_s_ = pose_recv_s_.load(std::memory_order_acquire);
@@ -188,24 +329,32 @@ bool Coupler::iterate(double now) {
     age = std::max(age, snap_t >= 0 ? now - snap_t : 1e9);
     if (snap.version >= 0 && snap.grabs.size() == 1 && snap.grabs[0].body == body_) {
       CouplingInputs in{x_dev, v_dev};
-      if (coupler_feedback(opt_, snap, in, ws_, f_u_, f_feed_, force_n) != CouplingStatus::kOk) force_n.setZero();
+      bool clamped = false;
+      if (coupler_feedback(opt_, snap, in, ws_, f_u_, f_feed_, force_n, &clamped) != CouplingStatus::kOk)
+        force_n.setZero();
+      if (clamped) c_.user_force_clamps.fetch_add(1, std::memory_order_relaxed);
       version = snap.version;
     }
   }
   const GuardedForce g = safety_.apply(now, age, force_n, Vec3::Zero());
+  if (grabbing_) {
+    c_.grab_feedbacks.fetch_add(1, std::memory_order_relaxed);
+    if ((g.flags & kSafetyWatchdog) && g.force.isZero(0)) c_.grab_watchdog_zeros.fetch_add(1, std::memory_order_relaxed);
+  }
   device::FeedbackCommand cmd;
   cmd.echo_device_seq = pose_.seq;
   cmd.snapshot_version = version;
   cmd.force_n = g.force;
   cmd.flags = g.flags;
   device::to_lcmt(cmd, opt_.device, ++feedback_seq_, bus::now_utime(), fb_);
+  fb_.instance_id = instance_id_;
   if (shm_feedback_) {
     shm_feedback_->write_msg(fb_);
   } else {
     bus_.publish(ch_feedback_, fb_);
   }
   if (send_user_force) {
-    bus::stamp(uf_);
+    bus::stamp(uf_, instance_id_);
     uf_.seq = ++user_seq_;
     uf_.user_id = opt_.user;
     uf_.grab_body = grabbing_ ? body_ : 0;
@@ -231,10 +380,9 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   c_.p50_us = hist_.percentile(0.5);
   c_.p99_us = hist_.percentile(0.99);
   c_.snapshot_age_ms = age_ms;
-  lcmt_process_stats s;
-  bus::stamp(s);
-  static std::atomic<int64_t> seq{0};
-  s.seq = ++seq;
+  lcmt_process_stats s{};
+  bus::stamp(s, instance_id_);
+  s.seq = ++stats_seq_;
   s.process_name = "coupler";
   s.process_id = opt_.user;
   s.loop_rate_hz = c_.rate_hz;
@@ -246,13 +394,23 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   s.rejected_messages = rejected_messages();
   s.stale_events = c_.stale_rejected.load();
   s.watchdog_events = safety_.watchdog().trips();
-  s.clamp_events = safety_.clamp_events();
+  s.clamp_events = safety_.clamp_events() + c_.user_force_clamps.load();
   s.nonfinite_events = safety_.nonfinite_events();
-  s.n_extra = 2;
-  s.extra_names = {"force_n", "grab_body"};
-  s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0)};
+  s.n_extra = 5;
+  s.extra_names = {"force_n", "grab_body", "restarts", "duplicate_rejected", "pose_rejected"};
+  s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0),
+                    static_cast<double>(c_.restarts.load()), static_cast<double>(c_.duplicate_rejected.load()),
+                    static_cast<double>(c_.pose_rejected.load())};
   bus_.publish(ch_stats_, s);
   hist_.reset();
+  // Another writer on our device's FEEDBACK segment? Its newest message would carry another instance id.
+  if (shm_feedback_check_) {
+    if (shm_feedback_check_->read_msg(fb_check_) == bus::ShmRead::kNew && fb_check_.instance_id != instance_id_) {
+      c_.other_feedback_writer.fetch_add(1, std::memory_order_relaxed);
+      refused_writer_.store(fb_check_.instance_id, std::memory_order_relaxed);
+    }
+  }
+  report_problems();
 }
 
 int Coupler::run(const std::atomic<bool>& stop) {
@@ -274,11 +432,11 @@ int Coupler::run(const std::atomic<bool>& stop) {
     next += period;
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up
     if (opt_.busy_wait) {
-      while (since(kEpoch) < next) {
+      while (since(kEpoch) < next && !stop.load(std::memory_order_relaxed)) {
       }
     } else {
-      std::this_thread::sleep_until(kEpoch + std::chrono::duration_cast<Clock::duration>(
-                                                 std::chrono::duration<double>(next)));
+      bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
+                               stop);
     }
   }
   return 0;

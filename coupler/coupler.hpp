@@ -12,6 +12,7 @@
 #include "haptree/bus/bus.hpp"
 #include "haptree/bus/latency_histogram.hpp"
 #include "haptree/bus/latest_value.hpp"
+#include "haptree/bus/origin.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "haptree/coupling.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -34,9 +35,12 @@ struct CouplerOptions {
   Vec3 offset = Vec3::Zero();         // scene position of the device origin
   int grab_body = -1;                 // -1: the body nearest the device point in the latest scene state
   double max_force_n = 3.0;           // clamp (device limit)
-  double stale_after_s = 0.005;       // watchdog: snapshot/pose older than this is stale
+  double stale_after_s = 0.05;        // watchdog: snapshot/pose older than this is stale (measured default:
+                                      // docs/benchmarks_processes.md; 5 ms tripped 5-17 times/s on 2 cores)
   double user_force_rate_hz = 1000;   // USER_FORCE publication rate
-  uint64_t model_fingerprint = 0;     // 0: lock onto the first snapshot's fingerprint
+  uint64_t model_fingerprint = 0;     // expected model (--model-fingerprint); 0: lock onto the first one heard
+  double max_device_position_m = 1.0; // a device position farther than this from the device origin (or
+                                      // non-finite) is a glitch: refused, counted, the watchdog zeroes the force
   bool shm = false;                   // device link over shared memory
   int max_nodes = 8192, max_slots = 16384;   // coupling workspace, reserved once
   std::string channel_suffix;
@@ -47,7 +51,15 @@ struct CouplerCounters {
       bad_rejected{0}, feedback_published{0};
   std::atomic<double> rate_hz{0}, p50_us{0}, p99_us{0}, snapshot_age_ms{-1}, force_n{0};
   std::atomic<int64_t> version_in_use{-1};
-  std::atomic<int64_t> restarts{0};               // snapshot streams resumed with a lower version (new server)
+  std::atomic<int64_t> restarts{0};               // a new server instance after the old stream went silent
+  std::atomic<int64_t> duplicate_rejected{0};     // snapshots of a second live server instance
+  std::atomic<int64_t> implausible_rejected{0};   // version jumps beyond what the elapsed time allows
+  std::atomic<int64_t> pose_rejected{0};          // DEVICE_STATE from another device instance, or absurd/non-finite
+  std::atomic<int64_t> device_restarts{0};        // a new device_bridge instance after the old went silent
+  std::atomic<int64_t> other_feedback_writer{0};  // times another instance's FEEDBACK was seen on our device's segment
+  std::atomic<int64_t> user_force_clamps{0};      // f_u clamped to the scene-side limit
+  std::atomic<int64_t> grab_feedbacks{0};         // feedback messages sent while grabbing
+  std::atomic<int64_t> grab_watchdog_zeros{0};    // ... of which exactly zero because of the watchdog
   std::atomic<int64_t> last_snapshot_utime{0};    // system clock (µs) when the newest snapshot was accepted
 };
 
@@ -59,14 +71,19 @@ class Coupler {
   const CouplerCounters& counters() const { return c_; }
   const CouplerOptions& options() const { return opt_; }
   int64_t rejected_messages() const;
+  int64_t instance_id() const { return instance_id_; }
+  int64_t watchdog_trips() const { return safety_.watchdog().trips(); }   // read after run() returned
 
  private:
   void on_snapshot(const void* data, uint32_t size);
   bool iterate(double now_s);
   void publish_stats(double period_s, int64_t iterations);
+  bool take_pose(const lcmt_device_state& m, double now_s);   // origin + sanity; false = refused
+  void report_problems();                                     // once-only warnings, outside the loop
 
   bus::Bus& bus_;
   CouplerOptions opt_;
+  int64_t instance_id_;
   WorkspaceMapping map_;
   VirtualCoupling3 vc_;
   ForceSafety safety_;
@@ -75,15 +92,25 @@ class Coupler {
   bus::LatestValue<CouplingSnapshot> snap_box_;
   lcmt_coupling_snapshot snap_msg_;
   int64_t newest_version_ = -1;        // handler-side
+  double newest_accept_s_ = -1;        // handler-side: when newest_version_ was accepted
+  bus::OriginLock server_lock_;        // handler-side: one live server instance
   std::atomic<uint64_t> locked_fingerprint_{0};
-  bool warned_foreign_ = false, warned_stale_ = false;
+  bool warned_foreign_ = false, warned_duplicate_ = false, warned_implausible_ = false;
   std::atomic<double> snapshot_recv_s_{-1};   // arrival time (loop clock) of the newest accepted snapshot
   // device pose
   bus::LatestValue<lcmt_device_state> pose_box_;
   std::atomic<double> pose_recv_s_{-1};
   std::unique_ptr<bus::ShmReader> shm_pose_;
   std::unique_ptr<bus::ShmWriter> shm_feedback_;
-  lcmt_device_state pose_{};
+  std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
+  bus::OriginLock device_lock_;        // pose thread (handler for LCM, loop for shm): one device instance
+  int64_t newest_pose_seq_ = -1;
+  std::atomic<int64_t> refused_device_{0}, refused_writer_{0};
+  std::atomic<bool> bad_pose_value_{false};
+  bool warned_device_ = false, warned_bad_pose_ = false, warned_writer_ = false, warned_clamp_ = false;
+  int64_t reported_device_restarts_ = 0;  lcmt_device_state pose_{}, shm_pose_msg_{};
+  lcmt_feedback fb_check_{};
+  int64_t stats_seq_ = 0;
   double pose_time_s_ = -1;
   // scene state (for the nearest-body pick on the grab edge only)
   bus::LatestValue<lcmt_scene_state> scene_box_;
@@ -109,8 +136,19 @@ struct CouplingInputs {
   Vec3 position_m = Vec3::Zero();
   Vec3 velocity_mps = Vec3::Zero();
 };
+// f_u is clamped to user_force_limit(o) before coupling_forces, so the feedback answers the force the
+// server will apply (*clamped tells whether it was).
 CouplingStatus coupler_feedback(const CouplerOptions& o, const CouplingSnapshot& snap, const CouplingInputs& in,
-                                CouplingWorkspace& ws, Vec6& f_u, Vec6& f_feed, Vec3& force_n) noexcept;
+                                CouplingWorkspace& ws, Vec6& f_u, Vec6& f_feed, Vec3& force_n,
+                                bool* clamped = nullptr) noexcept;
+// Scene-side limit on the user force: what the device clamp allows through the force mapping,
+// max_force_n / force_scale, times kUserForceMargin = 2 so that it stays out of the way while the
+// device clamp alone limits what is felt (f_feed differs from f_u by the body's dynamic response)
+// and bounds a device glitch to a known, finite force.
+constexpr double kUserForceMargin = 2.0;
+double user_force_limit(const CouplerOptions& o) noexcept;
+// Throws std::invalid_argument naming the option when a value is out of range.
+void check_coupler_options(const CouplerOptions& o);
 WorkspaceMapping coupler_mapping(const CouplerOptions& o);
 
 }  // namespace haptree

@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
+#include <string>
 #include <vector>
 
 #include "coupler/coupler.hpp"
@@ -14,21 +15,44 @@ int main(int argc, char** argv) {
   haptree::bus::BusOptions b;
   haptree::bus::add_bus_options(app, b);
   std::vector<double> offset{0, 0, 0};
-  app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>)")->capture_default_str();
-  app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>)")->capture_default_str();
-  app.add_option("--rate-hz", o.rate_hz, "coupling loop rate")->capture_default_str();
+  app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>)")
+      ->check(CLI::Range(0, 1000000))->capture_default_str();
+  app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>)")
+      ->check(CLI::Range(0, 1000000))->capture_default_str();
+  app.add_option("--rate-hz", o.rate_hz, "coupling loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_flag("!--sleep", o.busy_wait, "pace with sleep_until instead of busy waiting");
-  app.add_option("--stiffness", o.stiffness, "k_s, scene force per scene length")->capture_default_str();
-  app.add_option("--damping", o.damping, "b_s, scene force per scene velocity")->capture_default_str();
-  app.add_option("--position-scale", o.position_scale, "scene length units per device metre")->capture_default_str();
-  app.add_option("--force-scale", o.force_scale, "newtons per scene force unit")->capture_default_str();
-  app.add_option("--offset", offset, "scene position of the device origin (3 values)")->expected(3);
-  app.add_option("--grab-body", o.grab_body, "body to grab (-1: nearest to the device point)")->capture_default_str();
-  app.add_option("--max-force-n", o.max_force_n, "force clamp, N")->capture_default_str();
-  app.add_option("--stale-after-s", o.stale_after_s, "watchdog: input age that counts as stale")->capture_default_str();
-  app.add_option("--user-force-rate-hz", o.user_force_rate_hz, "USER_FORCE publication rate")->capture_default_str();
+  app.add_option("--stiffness", o.stiffness, "k_s, scene force per scene length")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--damping", o.damping, "b_s, scene force per scene velocity")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
+  app.add_option("--position-scale", o.position_scale, "scene length units per device metre")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--force-scale", o.force_scale, "newtons per scene force unit")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--offset", offset, "scene position of the device origin (3 values)")->expected(3)->check(haptree::bus::finite_in(-1e12, 1e12));
+  app.add_option("--grab-body", o.grab_body, "body to grab (-1: nearest to the device point)")
+      ->check(CLI::Range(-1, 1 << 30))->capture_default_str();
+  app.add_option("--max-force-n", o.max_force_n, "force clamp at the device, N (the user force sent to the server is clamped to 2 x this / --force-scale)")
+      ->check(haptree::bus::positive(1000))->capture_default_str();
+  app.add_option("--stale-after-s", o.stale_after_s, "watchdog: snapshot or device-pose age (s) that counts as stale; also the silence after which another "
+                 "server or device instance is taken as a restart (default measured: docs/benchmarks_processes.md)")
+      ->check(haptree::bus::positive(10))->capture_default_str();
+  app.add_option("--user-force-rate-hz", o.user_force_rate_hz, "USER_FORCE publication rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_option("--max-device-position-m", o.max_device_position_m,
+                 "a device position farther than this from the device origin (or non-finite) is a glitch: refused "
+                 "and counted; the watchdog zeroes the force")
+      ->check(haptree::bus::positive(1e3))->capture_default_str();
+  std::string fingerprint;
+  app.add_option("--model-fingerprint", fingerprint,
+                 "expected model fingerprint (16 hex digits, as sim_server logs it); snapshots of any other model "
+                 "are refused. Default: lock onto the first model heard")
+      ->check(CLI::Validator(
+          [](std::string& in) -> std::string {
+            if (in.empty() || in.size() > 16 || in.find_first_not_of("0123456789abcdefABCDEF") != std::string::npos ||
+                std::stoull(in, nullptr, 16) == 0)
+              return "'" + in + "' is not a nonzero fingerprint of up to 16 hex digits";
+            return "";
+          },
+          "HEX"));
   CLI11_PARSE(app, argc, argv);
   o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
+  if (!fingerprint.empty()) o.model_fingerprint = std::stoull(fingerprint, nullptr, 16);
   o.shm = b.shm;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
@@ -38,8 +62,11 @@ int main(int argc, char** argv) {
     haptree::Coupler coupler(bus, o);
     const int rc = coupler.run(g_stop);
     handler.stop();   // no callback may run into a destroyed Coupler
-    spdlog::info("coupler: {} iterations, {} snapshots, {} rejected", coupler.counters().iterations.load(),
-                 coupler.counters().snapshots_accepted.load(), coupler.rejected_messages());
+    const auto& k = coupler.counters();
+    spdlog::info("coupler: {} iterations, {} snapshots, {} rejected, {} watchdog trips, {} restarts, {} of {} "
+                 "feedbacks while grabbing zeroed by the watchdog",
+                 k.iterations.load(), k.snapshots_accepted.load(), coupler.rejected_messages(),
+                 coupler.watchdog_trips(), k.restarts.load(), k.grab_watchdog_zeros.load(), k.grab_feedbacks.load());
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

@@ -3,10 +3,12 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <cmath>
 #include <stdexcept>
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
+#include "haptree/bus/pacing.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
 #include "haptree/device/registry.hpp"
@@ -18,7 +20,15 @@ using Clock = std::chrono::steady_clock;
 static const Clock::time_point kEpoch = Clock::now();
 static double now_s() { return std::chrono::duration<double>(Clock::now() - kEpoch).count(); }
 
-DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options) : bus_(bus), opt_(options) {
+DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
+    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()), coupler_lock_(options.feedback_timeout_s) {
+  auto pos = [](double v) { return std::isfinite(v) && v > 0; };
+  if (!pos(opt_.rate_hz)) throw std::invalid_argument("device_bridge: --rate-hz must be a positive rate");
+  if (!pos(opt_.max_force_n)) throw std::invalid_argument("device_bridge: --max-force-n must be positive and finite");
+  if (!pos(opt_.feedback_timeout_s)) throw std::invalid_argument("device_bridge: the feedback timeout must be positive");
+  if (!(std::isfinite(opt_.mirror_rate_hz) && opt_.mirror_rate_hz >= 0))
+    throw std::invalid_argument("device_bridge: --mirror-rate-hz must be >= 0");
+  if (opt_.device < 0) throw std::invalid_argument("device_bridge: --device must be >= 0");
   device::DeviceConfig cfg;
   cfg.spec.name = opt_.kind + "_" + std::to_string(opt_.device);
   cfg.spec.max_force_n = opt_.max_force_n;
@@ -36,8 +46,10 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options) : 
     shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_);
   } else {
     bus_.subscribe<lcmt_feedback>(ch_feedback_, [this](const lcmt_feedback& m, const std::string&) {
+      const double t = now_s();
+      if (!from_followed_coupler(m, t)) return;
       fb_box_.write(m);
-      on_feedback(m, now_s());
+      on_feedback(m, t);
     });
   }
   spdlog::info("device_bridge {}: '{}' at {} Hz over {}", opt_.device, opt_.kind, opt_.rate_hz,
@@ -45,6 +57,44 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options) : 
 }
 
 DeviceBridge::~DeviceBridge() { device_->close(); }
+
+// One writer per device FEEDBACK channel: follow one coupler instance; another is taken only after the
+// followed one was silent for feedback_timeout_s (by then the device renders zero anyway): a restart.
+bool DeviceBridge::from_followed_coupler(const lcmt_feedback& m, double t) {
+  const bus::Origin o = coupler_lock_.check(m.instance_id, t);
+  if (!bus::accepted(o)) {
+    refused_.fetch_add(1, std::memory_order_relaxed);
+    if (o != bus::Origin::kPrevious) refused_id_.store(m.instance_id, std::memory_order_relaxed);
+    return false;
+  }
+  if (o == bus::Origin::kTakeover) takeovers_.fetch_add(1, std::memory_order_relaxed);
+  followed_id_.store(m.instance_id, std::memory_order_relaxed);
+  return true;
+}
+
+void DeviceBridge::poll_shm_feedback() {
+  if (shm_feedback_->read_msg(fb_scratch_) != bus::ShmRead::kNew) return;
+  const double t = now_s();
+  if (!from_followed_coupler(fb_scratch_, t)) return;
+  fb_shm_ = fb_scratch_;
+  on_feedback(fb_shm_, t);
+}
+
+// Once-only warnings, from the loop's 1 Hz tick.
+void DeviceBridge::report_problems() {
+  if (!warned_refused_ && refused_id_.load() != 0) {
+    warned_refused_ = true;
+    spdlog::warn("device_bridge {}: refusing FEEDBACK from coupler instance {:016x}: this device follows coupler "
+                 "instance {:016x}, which is live. Two couplers are driving device {}; stop one of them.",
+                 opt_.device, static_cast<uint64_t>(refused_id_.load()), static_cast<uint64_t>(followed_id_.load()),
+                 opt_.device);
+  }
+  if (takeovers_.load() != reported_takeovers_) {
+    reported_takeovers_ = takeovers_.load();
+    spdlog::info("device_bridge {}: now following coupler instance {:016x} (the previous one went silent)",
+                 opt_.device, static_cast<uint64_t>(followed_id_.load()));
+  }
+}
 
 void DeviceBridge::on_feedback(const lcmt_feedback& m, double t) {
   feedbacks_.fetch_add(1, std::memory_order_relaxed);
@@ -62,13 +112,14 @@ uint64_t DeviceBridge::latency_samples() const { return hist_.count(); }
 int DeviceBridge::run(const std::atomic<bool>& stop) {
   const double period = 1.0 / opt_.rate_hz;
   const double t0 = now_s();
-  double next = t0, next_mirror = t0;
+  double next = t0, next_mirror = t0, next_report = t0 + 1.0;
   device::DeviceReading r;
   lcmt_device_state msg{};
   while (!stop.load(std::memory_order_relaxed)) {
     const double t = now_s();
     if (device_->read(t - t0, r).ok()) {
       device::to_lcmt(r, opt_.device, bus::now_utime(), msg);
+      msg.instance_id = instance_id_;
       sent_s_[static_cast<size_t>(r.seq % kRing)].store(now_s(), std::memory_order_release);
       if (shm_state_) {
         shm_state_->write_msg(msg);
@@ -85,7 +136,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     // apply the latest feedback (zero when it is older than the timeout)
     Vec3 f = Vec3::Zero();
     if (shm_feedback_) {
-      if (shm_feedback_->read_msg(fb_shm_) == bus::ShmRead::kNew) on_feedback(fb_shm_, now_s());
+      poll_shm_feedback();
       fb_ = fb_shm_;
     } else if (fb_box_.update()) {
       fb_ = fb_box_.front();
@@ -97,13 +148,15 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());
     next += period;
     if (now_s() > next + 0.01) next = now_s();
+    if (t >= next_report) {
+      report_problems();
+      next_report = t + 1.0;
+    }
     if (opt_.busy_poll && shm_feedback_) {
-      while (now_s() < next) {
-        if (shm_feedback_->read_msg(fb_shm_) == bus::ShmRead::kNew) on_feedback(fb_shm_, now_s());
-      }
+      while (now_s() < next && !stop.load(std::memory_order_relaxed)) poll_shm_feedback();
     } else {
-      std::this_thread::sleep_until(kEpoch + std::chrono::duration_cast<Clock::duration>(
-                                                 std::chrono::duration<double>(next)));
+      bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
+                               stop);
     }
   }
   device_->write_force(Vec3::Zero());

@@ -13,6 +13,7 @@
 #include "haptree/bus/bus.hpp"
 #include "haptree/bus/latency_histogram.hpp"
 #include "haptree/bus/latest_value.hpp"
+#include "haptree/bus/origin.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "haptree/device/device.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -26,7 +27,8 @@ struct DeviceBridgeOptions {
   std::map<std::string, std::string> options;    // device options (key=value), see haptree/device/registry.cpp
   double rate_hz = 1000;                         // device loop rate
   double max_force_n = 3.0;
-  double feedback_timeout_s = 0.01;              // no feedback for this long -> render zero
+  double feedback_timeout_s = 0.01;              // no feedback for this long -> render zero; also the silence
+                                                 // after which another coupler instance may take over
   bool shm = false;
   double mirror_rate_hz = 100;
   bool busy_poll = false;                        // poll shm feedback between ticks (latency benchmark)
@@ -46,16 +48,28 @@ class DeviceBridge {
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
   double latency_percentile_us(double q) const;
   uint64_t latency_samples() const;
+  int64_t instance_id() const { return instance_id_; }
+  // FEEDBACK messages refused because another coupler instance (the one followed) is live.
+  int64_t feedback_refused() const { return refused_.load(); }
+  int64_t coupler_takeovers() const { return takeovers_.load(); }
 
  private:
   void on_feedback(const lcmt_feedback& m, double now_s);
+  bool from_followed_coupler(const lcmt_feedback& m, double now_s);   // one writer per FEEDBACK channel
+  void poll_shm_feedback();
+  void report_problems();
+  int64_t instance_id_;
+  bus::OriginLock coupler_lock_;   // used by the thread that receives feedback (handler for LCM, loop for shm)
+  std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0};
+  int64_t reported_takeovers_ = 0;
+  bool warned_refused_ = false;
   bus::Bus& bus_;
   DeviceBridgeOptions opt_;
   std::unique_ptr<device::Device> device_;
   std::unique_ptr<bus::ShmWriter> shm_state_;
   std::unique_ptr<bus::ShmReader> shm_feedback_;
   bus::LatestValue<lcmt_feedback> fb_box_;
-  lcmt_feedback fb_{}, fb_shm_{};
+  lcmt_feedback fb_{}, fb_shm_{}, fb_scratch_{};
   std::string ch_state_, ch_feedback_;
   static constexpr int kRing = 8192;
   std::array<std::atomic<double>, kRing> sent_s_{};

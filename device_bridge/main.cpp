@@ -15,11 +15,11 @@ int main(int argc, char** argv) {
   haptree::bus::BusOptions b;
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
-  app.add_option("--device", o.device, "device id")->capture_default_str();
+  app.add_option("--device", o.device, "device id")->check(CLI::Range(0, 1000000))->capture_default_str();
   app.add_option("--kind", o.kind, "scripted | virtual_hand | replay (registry name)")->capture_default_str();
   app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
-  app.add_option("--rate-hz", o.rate_hz, "device loop rate")->capture_default_str();
-  app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->capture_default_str();
+  app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
   app.add_flag("--busy-poll", o.busy_poll, "poll shared-memory feedback between ticks (latency benchmark)");
   CLI11_PARSE(app, argc, argv);
   for (const auto& s : kv) {

@@ -14,26 +14,45 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   app.add_option("--scene", o.scene, "chain|binary_tree|random_tree|star|protein_like, or a molecule name / PDB path")
       ->capture_default_str();
-  app.add_option("--n", o.n, "bodies of a procedural scene")->capture_default_str();
+  app.add_option("--n", o.n, "bodies of a procedural scene")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", o.urdf, "URDF file (overrides --scene)");
-  app.add_option("--budget-dofs", o.budget_dofs, "adaptive budget (active DOFs)")->capture_default_str();
-  app.add_option("--epsilon", o.epsilon, "> 0: threshold mode with this error bound")->capture_default_str();
-  app.add_option("--reselect-every", o.reselect_every, "steps between active-region selections")->capture_default_str();
-  app.add_option("--dt", o.dt, "time step, scene units (s; ps for molecules, e.g. 0.0005)")->capture_default_str();
-  app.add_option("--steps", o.steps, "steps to run (0 = until stopped)")->capture_default_str();
-  app.add_option("--rate-hz", o.rate_hz, "step rate (0 = free-running)")->capture_default_str();
-  app.add_option("--display-rate-hz", o.display_rate_hz, "scene state rate")->capture_default_str();
-  app.add_option("--users", o.users, "number of users (HAPTREE_USER_FORCE_0..)")->capture_default_str();
+  app.add_option("--budget-dofs", o.budget_dofs, "adaptive budget (active DOFs)")->check(CLI::Range(1, 1 << 24))->capture_default_str();
+  app.add_option("--epsilon", o.epsilon, "> 0: threshold mode with this error bound")
+      ->check(haptree::bus::finite_in(0, 1e30))->capture_default_str();
+  app.add_option("--reselect-every", o.reselect_every, "steps between active-region selections")
+      ->check(CLI::Range(1, 1 << 30))->capture_default_str();
+  app.add_option("--dt", o.dt, "time step, scene units (s; ps for molecules, e.g. 0.0005)")
+      ->check(haptree::bus::positive(1.0))->capture_default_str();
+  app.add_option("--steps", o.steps, "steps to run (0 = until stopped)")
+      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  app.add_option("--rate-hz", o.rate_hz, "step rate, Hz (0 = free-running)")
+      ->check(haptree::bus::finite_in(0, 1e6))->capture_default_str();
+  app.add_option("--display-rate-hz", o.display_rate_hz, "scene state rate, Hz (0: none)")
+      ->check(haptree::bus::finite_in(0, 1e4))->capture_default_str();
+  app.add_option("--users", o.users, "number of users (HAPTREE_USER_FORCE_0..)")
+      ->check(CLI::Range(1, 64))->capture_default_str();
   std::vector<double> gravity;
   app.add_option("--gravity", gravity,
                  "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
                  "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
-      ->delimiter(',')->expected(3);
+      ->delimiter(',')->expected(3)->check(haptree::bus::finite_in(-1e4, 1e4));
   app.add_option("--max-joint-rate", o.max_joint_rate,
                  "blow-up guard: a joint rate above this (or a non-finite state) restores the last "
-                 "healthy checkpoint at rest and is counted as a reset")->capture_default_str();
+                 "healthy checkpoint at rest and is counted as a reset")
+      ->check(haptree::bus::positive(1e30))->capture_default_str();
   app.add_option("--checkpoint-every", o.checkpoint_every, "steps between checkpoints of a healthy state")
-      ->capture_default_str();
+      ->check(CLI::Range(1, 1 << 30))->capture_default_str();
+  app.add_option("--user-force-stale-s", o.user_force_stale_s,
+                 "watchdog on user forces: a user whose USER_FORCE has not arrived for this long has the force "
+                 "ramped to zero (over --user-force-ramp-s; counted in the stats' watchdog_events)")
+      ->check(haptree::bus::positive(10.0))->capture_default_str();
+  app.add_option("--user-force-ramp-s", o.user_force_ramp_s, "time from full user force to zero once stale")
+      ->check(haptree::bus::finite_in(0, 10.0))->capture_default_str();
+  app.add_option("--max-user-force", o.max_user_force,
+                 "scene-side limit on an incoming user force (scene force units; the moment gets the same number "
+                 "per scene length): larger ones are clamped, non-finite ones zeroed, both counted. Default: "
+                 "2 x the coupler's default max_force_n / force_scale (2 x 3 N / 0.5)")
+      ->check(haptree::bus::positive(1e12))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;

@@ -9,7 +9,9 @@
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
+#include "haptree/bus/pacing.hpp"
 #include "haptree/bus/latest_value.hpp"
+#include "haptree/bus/origin.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/dca.hpp"
@@ -17,6 +19,7 @@
 #include "haptree/lcmt_process_stats.hpp"
 #include "haptree/lcmt_scene_state.hpp"
 #include "haptree/molecule/scene.hpp"
+#include "haptree/safety.hpp"
 #include "haptree/scenes.hpp"
 
 namespace haptree {
@@ -27,11 +30,23 @@ struct Holder {
 }  // namespace molecule_fwd
 
 using Clock = std::chrono::steady_clock;
+static const Clock::time_point kEpoch = Clock::now();
+static double since_epoch() { return std::chrono::duration<double>(Clock::now() - kEpoch).count(); }
 
 struct SimServer::UserSlot {
   int user = 0;
   bus::LatestValue<lcmt_user_force> box;
   lcmt_user_force latest{};
+  // handler thread: which coupler this user's forces come from, and its newest seq
+  bus::OriginLock origin;
+  int64_t newest_seq = 0;
+  std::atomic<bool> warned_foreign{false};
+  // stepping thread: arrival time of the newest message, its force after the sanity checks, watchdog
+  double last_in_s = -1;
+  double max_gap_s = 0;
+  Vec6 f_msg = Vec6::Zero();
+  Watchdog watchdog;
+  std::atomic<double> applied_norm{0};
   bool grabbing = false;
   int body = -1;
   Vec3 local_point = Vec3::Zero();
@@ -46,7 +61,28 @@ static bool is_procedural(const std::string& s) {
   return s == "chain" || s == "binary_tree" || s == "random_tree" || s == "star" || s == "protein_like";
 }
 
-SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options) : bus_(bus), opt_(options) {
+static void check_options(const SimServerOptions& o) {
+  auto fail = [](const std::string& what) { throw std::invalid_argument("sim_server: " + what); };
+  auto pos = [](double v) { return std::isfinite(v) && v > 0; };
+  if (!pos(o.dt)) fail("--dt must be a positive finite time step, got " + std::to_string(o.dt));
+  if (!(std::isfinite(o.rate_hz) && o.rate_hz >= 0)) fail("--rate-hz must be >= 0 (0 = free-running)");
+  if (!(std::isfinite(o.display_rate_hz) && o.display_rate_hz >= 0)) fail("--display-rate-hz must be >= 0");
+  if (o.users < 1) fail("--users must be at least 1, got " + std::to_string(o.users));
+  if (o.n < 1) fail("--n must be at least 1, got " + std::to_string(o.n));
+  if (o.budget_dofs < 1) fail("--budget-dofs must be at least 1, got " + std::to_string(o.budget_dofs));
+  if (!(std::isfinite(o.epsilon) && o.epsilon >= 0)) fail("--epsilon must be >= 0");
+  if (o.reselect_every < 1) fail("--reselect-every must be at least 1");
+  if (o.steps < 0) fail("--steps must be >= 0");
+  if (!pos(o.max_joint_rate)) fail("--max-joint-rate must be positive");
+  if (o.checkpoint_every < 1) fail("--checkpoint-every must be at least 1");
+  if (!pos(o.user_force_stale_s) || !(std::isfinite(o.user_force_ramp_s) && o.user_force_ramp_s >= 0))
+    fail("--user-force-stale-s must be positive and the ramp >= 0");
+  if (!pos(o.max_user_force)) fail("--max-user-force must be positive");
+}
+
+SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
+    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()) {
+  check_options(opt_);
   const bool default_gravity = !opt_.gravity.allFinite();
   if (!opt_.urdf.empty()) {
     io::UrdfOptions uo;
@@ -80,7 +116,32 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options) : bus_(bus)
     auto slot = std::make_unique<UserSlot>();
     slot->user = u;
     slot->channel = bus::channel::coeffs(u, opt_.channel_suffix);
-    bus_.subscribe_latest<lcmt_user_force>(bus::channel::user_force(u, opt_.channel_suffix), slot->box);
+    slot->origin = bus::OriginLock(opt_.user_force_stale_s);
+    slot->watchdog = Watchdog(WatchdogParams{opt_.user_force_stale_s, opt_.user_force_ramp_s, 0.1});
+    // Handler thread: one coupler per user (a second live one is refused), reordered messages dropped.
+    bus_.subscribe<lcmt_user_force>(
+        bus::channel::user_force(u, opt_.channel_suffix), [this, slot = slot.get()](const lcmt_user_force& m, const std::string&) {
+          const bus::Origin o = slot->origin.check(m.instance_id, since_epoch());
+          if (!bus::accepted(o)) {
+            c_.foreign_rejected.fetch_add(1, std::memory_order_relaxed);
+            if (o != bus::Origin::kPrevious && !slot->warned_foreign.exchange(true))
+              spdlog::warn("sim_server: refusing USER_FORCE for user {} from coupler instance {:016x}: coupler "
+                           "instance {:016x} is live on that channel. Run one coupler per user (--user).",
+                           slot->user, static_cast<uint64_t>(m.instance_id), static_cast<uint64_t>(slot->origin.locked()));
+            return;
+          }
+          if (o == bus::Origin::kTakeover) {
+            spdlog::info("sim_server: user {}: new coupler instance {:016x}", slot->user,
+                         static_cast<uint64_t>(m.instance_id));
+            slot->newest_seq = 0;
+          } else if (m.seq <= slot->newest_seq) {
+            c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
+            return;
+          }
+          slot->newest_seq = m.seq;
+          slot->box.write(m);
+          c_.user_forces_in.fetch_add(1, std::memory_order_relaxed);
+        });
     users_.push_back(std::move(slot));
   }
   forward_kinematics(*model_, *data_, state_->q);
@@ -92,14 +153,50 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options) : bus_(bus)
 
 SimServer::~SimServer() = default;
 
+Vec6 SimServer::applied_user_force(int u) const { return users_.at(static_cast<size_t>(u))->f_u; }
+double SimServer::applied_user_force_norm(int u) const {
+  return users_.at(static_cast<size_t>(u))->applied_norm.load(std::memory_order_relaxed);
+}
+
+// Takes the newest USER_FORCE of one user: sanity check and clamp once per message (non-finite -> zero,
+// above max_user_force -> scaled down, both counted), then the watchdog gain on its age.
+void SimServer::take_user_force(UserSlot& u, double now) {
+  if (u.box.update()) {
+    u.latest = u.box.front();
+    if (u.last_in_s >= 0) u.max_gap_s = std::max(u.max_gap_s, now - u.last_in_s);
+    u.last_in_s = now;
+    Vec6 f;
+    for (int i = 0; i < 6; ++i) f[i] = u.latest.force[i];
+    if (!f.allFinite()) {
+      f.setZero();
+      c_.nonfinite_events.fetch_add(1, std::memory_order_relaxed);
+    } else if (f.head<3>().norm() > opt_.max_user_force || f.tail<3>().norm() > opt_.max_user_force) {
+      bool clamped = false;
+      f.head<3>() = clamp_norm(f.head<3>(), opt_.max_user_force, &clamped);
+      f.tail<3>() = clamp_norm(f.tail<3>(), opt_.max_user_force, &clamped);
+      if (c_.clamp_events.fetch_add(1, std::memory_order_relaxed) == 0)
+        spdlog::warn("sim_server: user {} sent a force of {:.3g} scene units, above --max-user-force {}: clamped "
+                     "(counted in clamp_events; the coupler should already clamp to 2 x max_force_n / force_scale)",
+                     u.user, Vec3(u.latest.force[3], u.latest.force[4], u.latest.force[5]).norm(),
+                     opt_.max_user_force);
+    }
+    u.f_msg = f;
+  }
+  const int64_t trips = u.watchdog.trips();
+  const double age = u.last_in_s >= 0 ? now - u.last_in_s : std::numeric_limits<double>::infinity();
+  u.watchdog.update(now, age);
+  if (u.watchdog.trips() != trips) c_.watchdog_events.fetch_add(1, std::memory_order_relaxed);
+}
+
 void SimServer::step_once() {
   const Model& m = *model_;
   Data& d = *data_;
   State& st = *state_;
   // 1. Latest user forces; a new grab fixes the material point in the body frame.
   bool any_grab = false, grab_changed = false;
+  const double now = since_epoch();
   for (auto& u : users_) {
-    if (u->box.update()) u->latest = u->box.front();
+    take_user_force(*u, now);
     const lcmt_user_force& msg = u->latest;
     const bool want = msg.active && msg.grab_body >= 1 && msg.grab_body < m.nbodies;
     if (want != u->grabbing || (want && msg.grab_body != u->body)) grab_changed = true;
@@ -110,12 +207,13 @@ void SimServer::step_once() {
     }
     u->grabbing = want;
     if (want) {
-      for (int i = 0; i < 6; ++i) u->f_u[i] = msg.force[i];
-      if (!u->f_u.allFinite()) u->f_u.setZero();
+      // A stale user's force ramps to zero (the grab is kept, so the coupler resumes where it was).
+      u->f_u = u->watchdog.gain() * u->f_msg;
       any_grab = true;
     } else {
       u->f_u.setZero();
     }
+    u->applied_norm.store(u->f_u.tail<3>().norm(), std::memory_order_relaxed);
   }
   // 2. Selection: our own, every reselect_every steps, then the grabbed leaves' root paths are forced
   //    active (set_active_region), so each grabbed body is a leaf of the active tree.
@@ -208,7 +306,7 @@ void SimServer::publish_snapshots() {
       continue;
     }
     bus::to_lcmt(u->snapshot, u->msg);
-    bus::stamp(u->msg);
+    bus::stamp(u->msg, instance_id_);
     u->msg.user_id = u->user;
     const int bytes = u->msg.getEncodedSize();
     snapshot_bytes_.store(static_cast<size_t>(bytes), std::memory_order_relaxed);
@@ -224,7 +322,7 @@ void SimServer::publish_scene_state(double step_ms) {
   const Model& m = *model_;
   const Data& d = *data_;
   lcmt_scene_state s;
-  bus::stamp(s);
+  bus::stamp(s, instance_id_);
   s.version = version_;
   s.sim_time = state_->t;
   s.nbodies = m.nbodies;
@@ -241,23 +339,33 @@ void SimServer::publish_scene_state(double step_ms) {
   bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
 }
 
+// Every field set (issue 11, defect 6): counters from SimServerCounters, latencies from the last step
+// and the slowest step of the period.
 void SimServer::publish_stats(double rate_hz) {
-  lcmt_process_stats s;
-  bus::stamp(s);
-  static int64_t seq = 0;
-  s.seq = ++seq;
+  lcmt_process_stats s{};
+  bus::stamp(s, instance_id_);
+  s.seq = ++stats_seq_;
   s.process_name = "sim_server";
+  s.process_id = 0;
   s.loop_rate_hz = rate_hz;
   s.latency_p50_us = step_ms_.load() * 1e3;
-  s.latency_p99_us = s.latency_p50_us;
+  s.latency_p99_us = std::max(max_step_ms_ * 1e3, s.latency_p50_us);
   s.snapshot_age_ms = -1;
+  s.messages_in = c_.user_forces_in.load();
   s.messages_out = snapshots_.load();
-  s.rejected_messages = bus_.rejected_total();
-  s.n_extra = 3;
-  s.extra_names = {"active_dofs", "snapshot_bytes", "resets"};
+  s.rejected_messages = bus_.rejected_total() + c_.foreign_rejected.load();
+  s.stale_events = c_.stale_rejected.load();
+  s.watchdog_events = c_.watchdog_events.load();
+  s.clamp_events = c_.clamp_events.load();
+  s.nonfinite_events = c_.nonfinite_events.load();
+  double gap = 0;
+  for (auto& u : users_) gap = std::max(gap, u->max_gap_s), u->max_gap_s = 0;
+  s.n_extra = 4;
+  s.extra_names = {"active_dofs", "snapshot_bytes", "resets", "user_force_gap_max_ms"};
   s.extra_values = {static_cast<double>(active_dofs_.load()), static_cast<double>(snapshot_bytes_.load()),
-                    static_cast<double>(resets_.load())};
+                    static_cast<double>(resets_.load()), 1e3 * gap};
   bus_.publish(bus::channel::stats("sim_server", opt_.channel_suffix), s);
+  max_step_ms_ = 0;
 }
 
 int SimServer::run(const std::atomic<bool>& stop) {
@@ -274,6 +382,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
     const auto b = Clock::now();
     const double ms = std::chrono::duration<double, std::milli>(b - a).count();
     step_ms_.store(ms, std::memory_order_relaxed);
+    max_step_ms_ = std::max(max_step_ms_, ms);
     steps_.fetch_add(1, std::memory_order_relaxed);
     if (opt_.display_rate_hz > 0 && b >= next_display) {
       publish_scene_state(ms);
@@ -287,7 +396,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
     }
     if (period.count() > 0) {
       next_step += std::chrono::duration_cast<Clock::duration>(period);
-      std::this_thread::sleep_until(next_step);
+      bus::sleep_until_or_stop(next_step, stop);
     } else {
       std::this_thread::yield();
     }

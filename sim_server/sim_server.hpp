@@ -44,6 +44,27 @@ struct SimServerOptions {
   // time unit) restores the last checkpoint at rest instead of serving a diverged body.
   double max_joint_rate = 1e3;
   int checkpoint_every = 500;          // steps between checkpoints of a healthy state
+  // Watchdog on user forces: a user whose USER_FORCE has not arrived for user_force_stale_s has the force
+  // ramped to zero over user_force_ramp_s (and back up over 0.1 s once fresh). The coupler sends at 1 kHz,
+  // so 100 ms is 100 lost messages, and 2x the coupler's own stale time (50 ms): a stall of the coupler's
+  // inputs is handled by the coupler first, a dead coupler or link by this watchdog.
+  double user_force_stale_s = 0.1;
+  double user_force_ramp_s = 0.05;
+  // Scene-side limit on an incoming user force (norm of the force part; the moment part gets the same
+  // number per scene length unit); larger ones are clamped, non-finite ones zeroed, both counted. The
+  // default follows from the coupler's defaults: it clamps f_u to 2 x max_force_n / force_scale =
+  // 2 x 3 N / 0.5 N per unit = 12 scene force units; the launcher passes the value of its own options.
+  double max_user_force = 12.0;
+};
+
+// Health counters of the server (relaxed atomics; the stats message carries them).
+struct SimServerCounters {
+  std::atomic<int64_t> user_forces_in{0};     // USER_FORCE messages accepted (decoded, from the locked coupler)
+  std::atomic<int64_t> foreign_rejected{0};   // USER_FORCE from a second coupler instance while one is live
+  std::atomic<int64_t> stale_rejected{0};     // USER_FORCE older than the newest one of the same coupler
+  std::atomic<int64_t> watchdog_events{0};    // user-force watchdog trips (fresh -> stale)
+  std::atomic<int64_t> clamp_events{0};       // user forces above max_user_force, clamped
+  std::atomic<int64_t> nonfinite_events{0};   // non-finite user forces, zeroed
 };
 
 class SimServer {
@@ -60,6 +81,13 @@ class SimServer {
   int64_t snapshots_published() const { return snapshots_.load(std::memory_order_relaxed); }
   size_t last_snapshot_bytes() const { return snapshot_bytes_.load(std::memory_order_relaxed); }
   int64_t resets() const { return resets_.load(std::memory_order_relaxed); }
+  const SimServerCounters& counters() const { return c_; }
+  int64_t instance_id() const { return instance_id_; }
+  // Force (at the grab point, world axes) applied to user u in the last step, after the watchdog and
+  // the clamp. Read it from the thread that runs the server (or after run() returned).
+  Vec6 applied_user_force(int u) const;
+  // |force part| of the same, readable from any thread (telemetry).
+  double applied_user_force_norm(int u) const;
 
  private:
   struct UserSlot;
@@ -68,8 +96,13 @@ class SimServer {
   void publish_scene_state(double step_ms);
   void publish_stats(double rate_hz);
 
+  void take_user_force(UserSlot& u, double now_s);
   bus::Bus& bus_;
   SimServerOptions opt_;
+  int64_t instance_id_;
+  SimServerCounters c_;
+  int64_t stats_seq_ = 0;
+  double max_step_ms_ = 0;   // over the current stats period
   std::shared_ptr<const Model> model_;
   std::unique_ptr<molecule_fwd::Holder> molecule_;
   std::unique_ptr<Data> data_;

@@ -21,6 +21,7 @@
 #include "coupler/coupler.hpp"
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/bus.hpp"
+#include "haptree/bus/cli.hpp"
 #include "haptree/dca.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
@@ -45,28 +46,31 @@ int main(int argc, char** argv) {
   double coupler_rate_hz = 10000;
   double position_scale = 10, force_scale = 0.5, stiffness = 20, damping = 0, max_force_n = 3;
   double pull_distance_m = 0.03;
+  double stale_after_s = haptree::CouplerOptions{}.stale_after_s;
   std::string lcm_url = "memq://";
   app.add_option("--scene", so.scene, "chain|binary_tree|random_tree|star|protein_like, molecule name or PDB")->capture_default_str();
-  app.add_option("--n", so.n, "bodies of a procedural scene")->capture_default_str();
+  app.add_option("--n", so.n, "bodies of a procedural scene")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
-  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->capture_default_str();
-  app.add_option("--dt", so.dt, "sim time step (scene units)")->capture_default_str();
+  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->check(CLI::Range(1, 1 << 24))->capture_default_str();
+  app.add_option("--dt", so.dt, "sim time step (scene units)")->check(haptree::bus::positive(1.0))->capture_default_str();
   std::vector<double> gravity;
   app.add_option("--gravity", gravity,
                  "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
                  "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
-      ->delimiter(',')->expected(3);
-  app.add_option("--sim-rate-hz", so.rate_hz, "sim step rate (0 = free-running)")->capture_default_str();
-  app.add_option("--duration-s", duration_s, "wall-clock run time")->capture_default_str();
+      ->delimiter(',')->expected(3)->check(haptree::bus::finite_in(-1e4, 1e4));
+  app.add_option("--sim-rate-hz", so.rate_hz, "sim step rate (0 = free-running)")->check(haptree::bus::finite_in(0, 1e6))->capture_default_str();
+  app.add_option("--duration-s", duration_s, "wall-clock run time")->check(haptree::bus::positive(1e7))->capture_default_str();
   app.add_option("--users", users, "users (one coupler + one scripted device each, pulling different bodies)")
       ->check(CLI::Range(1, 8))->capture_default_str();
-  app.add_option("--coupler-rate-hz", coupler_rate_hz, "coupling loop rate")->capture_default_str();
-  app.add_option("--position-scale", position_scale, "scene length per device metre")->capture_default_str();
-  app.add_option("--force-scale", force_scale, "N per scene force unit")->capture_default_str();
-  app.add_option("--stiffness", stiffness, "k_s (scene units)")->capture_default_str();
-  app.add_option("--damping", damping, "b_s (scene units)")->capture_default_str();
-  app.add_option("--max-force-n", max_force_n, "device force limit")->capture_default_str();
-  app.add_option("--pull-distance-m", pull_distance_m, "scripted pull, device metres")->capture_default_str();
+  app.add_option("--coupler-rate-hz", coupler_rate_hz, "coupling loop rate")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_option("--position-scale", position_scale, "scene length per device metre")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--force-scale", force_scale, "N per scene force unit")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--stiffness", stiffness, "k_s (scene units)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--damping", damping, "b_s (scene units)")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
+  app.add_option("--max-force-n", max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
+  app.add_option("--stale-after-s", stale_after_s, "coupler watchdog: snapshot/pose age that counts as stale, s")
+      ->check(haptree::bus::positive(10))->capture_default_str();
+  app.add_option("--pull-distance-m", pull_distance_m, "scripted pull, device metres")->check(haptree::bus::finite_in(-1, 1))->capture_default_str();
   app.add_option("--lcm-url", lcm_url, "bus for all threads (memq:// keeps everything in-process; embedded mode only)")
       ->capture_default_str();
   haptree::tools::ProcessesOptions po;
@@ -85,6 +89,13 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   so.users = users;
+  // The server's limit on incoming user forces: the coupler's own clamp (2 x max_force_n / force_scale).
+  {
+    haptree::CouplerOptions co;
+    co.max_force_n = max_force_n;
+    co.force_scale = force_scale;
+    so.max_user_force = haptree::user_force_limit(co);
+  }
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   if (po.enabled) {
@@ -100,6 +111,7 @@ int main(int argc, char** argv) {
     se.damping = damping;
     se.max_force_n = max_force_n;
     se.pull_distance_m = pull_distance_m;
+    se.stale_after_s = stale_after_s;
     return haptree::tools::run_processes(po, se, g_stop);
   }
   try {
@@ -130,7 +142,8 @@ int main(int argc, char** argv) {
       co.max_force_n = max_force_n;
       co.grab_body = b;
       co.offset = d0.r[b] - position_scale * grab_m;
-      co.stale_after_s = 0.05;   // in-process on shared cores: tolerate sim steps up to 50 ms
+      co.model_fingerprint = model.fingerprint;   // refuse any other model on the bus
+      co.stale_after_s = stale_after_s;
       couplers.push_back(std::make_unique<haptree::Coupler>(bus, co));
       haptree::DeviceBridgeOptions bo;
       bo.device = u;

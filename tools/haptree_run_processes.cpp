@@ -254,12 +254,14 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     std::vector<int> bodies;
     std::vector<Vec3> offsets;
     int nbodies = 0, nv = 0;
+    uint64_t fingerprint = 0;
     {
       bus::Bus probe("memq://");
       SimServer server(probe, se.sim);
       const Model& model = server.model();
       nbodies = model.nbodies - 1;
       nv = model.nv;
+      fingerprint = model.fingerprint;
       Data d0(model);
       State s0(model);
       forward_kinematics(model, d0, s0.q);
@@ -312,7 +314,8 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     if (!se.sim.urdf.empty()) sim.insert(sim.end(), {"--urdf", se.sim.urdf});
     sim.insert(sim.end(), {"--scene", se.sim.scene, "--n", std::to_string(se.sim.n), "--budget-dofs",
                            std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--rate-hz",
-                           fmt_d(se.sim.rate_hz), "--users", std::to_string(se.users)});
+                           fmt_d(se.sim.rate_hz), "--users", std::to_string(se.users), "--max-user-force",
+                           fmt_d(se.sim.max_user_force)});
     if (se.sim.gravity.allFinite())
       sim.insert(sim.end(), {"--gravity", fmt::format("{},{},{}", se.sim.gravity.x(), se.sim.gravity.y(),
                                                       se.sim.gravity.z())});
@@ -326,7 +329,8 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              fmt_d(se.coupler_rate_hz), "--sleep", "--stiffness", fmt_d(se.stiffness), "--damping",
                              fmt_d(se.damping), "--position-scale", fmt_d(se.position_scale), "--force-scale",
                              fmt_d(se.force_scale), "--max-force-n", fmt_d(se.max_force_n), "--grab-body",
-                             std::to_string(bodies[static_cast<size_t>(u)]), "--stale-after-s", "0.05",
+                             std::to_string(bodies[static_cast<size_t>(u)]), "--model-fingerprint",
+                             fmt::format("{:016x}", fingerprint), "--stale-after-s", fmt_d(se.stale_after_s),
                              "--offset", fmt_d(o.x()), fmt_d(o.y()), fmt_d(o.z())});
       if (shm) cpl.push_back("--shm");
       const std::string cu = "coupler_" + std::to_string(u);

@@ -5,7 +5,10 @@
 #include <CLI/CLI.hpp>
 
 #include <atomic>
+#include <chrono>
+#include <cmath>
 #include <csignal>
+#include <cstdlib>
 #include <string>
 
 namespace haptree::bus {
@@ -17,6 +20,25 @@ struct BusOptions {
   double mirror_rate_hz = 100.0;                           // shm -> LCM mirror rate (0 = no mirror)
 };
 
+// A finite number in [lo, hi] (lo excluded when open_lo). CLI::Range lets NaN through (every comparison
+// with NaN is false), so every floating-point option of the processes uses this instead. The message
+// names the allowed range in plain words; CLI11 prefixes it with the option's name.
+inline CLI::Validator finite_in(double lo, double hi, bool open_lo = false) {
+  const std::string range = (open_lo ? "(" : "[") + CLI::detail::to_string(lo) + ", " + CLI::detail::to_string(hi) + "]";
+  return CLI::Validator(
+      [lo, hi, open_lo, range](std::string& in) -> std::string {
+        char* end = nullptr;
+        const double v = std::strtod(in.c_str(), &end);
+        if (end == in.c_str() || *end != '\0') return "'" + in + "' is not a number";
+        if (!std::isfinite(v)) return "'" + in + "' is not a finite number";
+        if (v < lo || v > hi || (open_lo && v == lo))
+          return in + " is out of range: expected a number in " + range;
+        return std::string();
+      },
+      "NUMBER in " + range);
+}
+inline CLI::Validator positive(double hi) { return finite_in(0.0, hi, true); }
+
 inline void add_bus_options(CLI::App& app, BusOptions& o) {
   app.add_option("--lcm-url", o.lcm_url, "LCM provider: udpm://... between processes/hosts, memq:// in-process")
       ->envname("LCM_DEFAULT_URL")
@@ -27,7 +49,7 @@ inline void add_bus_options(CLI::App& app, BusOptions& o) {
   app.add_flag("--shm", o.shm, "carry device state and feedback over same-host shared memory");
   app.add_option("--mirror-rate-hz", o.mirror_rate_hz,
                  "rate at which shared-memory channels are republished on LCM for lcm-logger (0: off)")
-      ->check(CLI::Range(0.0, 10000.0))
+      ->check(finite_in(0.0, 10000.0))
       ->capture_default_str();
 }
 

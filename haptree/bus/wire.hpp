@@ -5,6 +5,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstring>
+#include <random>
 
 #include "haptree/lcmt_coupling_snapshot.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -40,11 +41,36 @@ inline bool peek_fingerprint(const void* data, size_t size, int64_t* out) noexce
   return true;
 }
 
-// Sets schema_version from the type's constant and utime to now. Returns msg.
+// A random nonzero 64-bit id, drawn once per publishing component object (SimServer, Coupler,
+// DeviceBridge, ...): the `instance_id` of everything it publishes. Several components live in one process
+// in the embedded launcher, so the id belongs to the object, not the process. Consumers lock onto one
+// producer instance (haptree/bus/origin.hpp): a new id tells a restart from a reordered or replayed message.
+inline int64_t new_instance_id() {
+  std::random_device rd;
+  uint64_t v = 0;
+  while (v == 0) v = (uint64_t(rd()) << 32) ^ uint64_t(rd());
+  int64_t id;
+  std::memcpy(&id, &v, 8);
+  return id;
+}
+
+// Big-endian int64 at byte 20: the instance_id of any haptree message (fingerprint 8, schema 4, utime 8).
+inline bool peek_instance_id(const void* data, size_t size, int64_t* out) noexcept {
+  if (data == nullptr || size < 28) return false;
+  const auto* b = static_cast<const uint8_t*>(data) + 20;
+  uint64_t v = 0;
+  for (int i = 0; i < 8; ++i) v = (v << 8) | b[i];
+  std::memcpy(out, &v, 8);
+  return true;
+}
+
+// Sets schema_version from the type's constant, the publisher's instance id and utime (default now).
+// Every publisher calls it (or sets the three fields itself). Returns msg.
 template <class T>
-T& stamp(T& msg, int64_t utime = now_utime()) noexcept {
+T& stamp(T& msg, int64_t instance_id, int64_t utime = now_utime()) noexcept {
   msg.schema_version = T::SCHEMA_VERSION;
   msg.utime = utime;
+  msg.instance_id = instance_id;
   return msg;
 }
 
@@ -68,9 +94,9 @@ template <class T>
 inline bool counts_plausible(const T*, const uint8_t*, size_t) { return true; }
 
 inline bool counts_plausible(const lcmt_coupling_snapshot*, const uint8_t* d, size_t size) {
-  // hash 8, schema 4, utime 8, fingerprint 8, version 8, sim_time 8, user_id 4 -> n_grabs at 48
+  // hash 8, schema 4, utime 8, instance 8, fingerprint 8, version 8, sim_time 8, user_id 4 -> n_grabs at 56
   int32_t n = 0;
-  size_t off = 48;
+  size_t off = 56;
   if (!read_i32(d, size, off, &n) || !count_fits(n, size, off + 4, 4 + 24 + 24)) return false;
   off += 4 + static_cast<size_t>(n) * 52;
   if (!read_i32(d, size, off, &n) || !count_fits(n, size, off + 4, 4)) return false;
@@ -78,16 +104,16 @@ inline bool counts_plausible(const lcmt_coupling_snapshot*, const uint8_t* d, si
   return read_i32(d, size, off, &n) && count_fits(n, size, off + 4, 8);
 }
 inline bool counts_plausible(const lcmt_scene_state*, const uint8_t* d, size_t size) {
-  // hash 8, schema 4, utime 8, version 8, sim_time 8 -> nbodies at 36
+  // hash 8, schema 4, utime 8, instance 8, version 8, sim_time 8 -> nbodies at 44
   int32_t n = 0;
-  return read_i32(d, size, 36, &n) && count_fits(n, size, 40, 24 + 32);
+  return read_i32(d, size, 44, &n) && count_fits(n, size, 48, 24 + 32);
 }
 inline bool counts_plausible(const lcmt_process_stats*, const uint8_t* d, size_t size) {
-  // hash 8, schema 4, utime 8, seq 8 -> process_name (int32 length incl. NUL, bytes) at 28
+  // hash 8, schema 4, utime 8, instance 8, seq 8 -> process_name (int32 length incl. NUL, bytes) at 36
   int32_t len = 0;
-  if (!read_i32(d, size, 28, &len) || len < 1 || !count_fits(len, size, 32, 1)) return false;
+  if (!read_i32(d, size, 36, &len) || len < 1 || !count_fits(len, size, 40, 1)) return false;
   // then process_id 4, 4 doubles 32, 7 int64 56 -> n_extra
-  const size_t off = 32 + static_cast<size_t>(len) + 4 + 32 + 56;
+  const size_t off = 40 + static_cast<size_t>(len) + 4 + 32 + 56;
   int32_t n = 0;
   // each extra: name (4-byte length + at least NUL) and a double
   return read_i32(d, size, off, &n) && count_fits(n, size, off + 4, 5 + 8);

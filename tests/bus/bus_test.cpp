@@ -75,12 +75,12 @@ TEST(Bus, MemqTypedRoundTrip) {
   bus.subscribe_latest<lcmt_feedback>(channel::feedback(0), box);
 
   lcmt_device_state m{};
-  stamp(m, 123);
+  stamp(m, 7, 123);
   m.seq = 7;
   m.position_m[1] = 0.5;
   ASSERT_EQ(bus.publish(ch, m), 0);
   lcmt_feedback f{};
-  stamp(f, 456);
+  stamp(f, 7, 456);
   f.force_n[2] = -1.25;
   f.echo_device_seq = 7;
   ASSERT_EQ(bus.publish(channel::feedback(0), f), 0);
@@ -138,7 +138,7 @@ TEST(Bus, RandomBytesOnEveryChannelAreCountedAsRejected) {
   }
   // The bus still works afterwards.
   lcmt_feedback f{};
-  stamp(f);
+  stamp(f, 7);
   ASSERT_EQ(bus.publish(channels[1], f), 0);
   ASSERT_TRUE(handle_until(bus, [&] { return callbacks == 1; }));
 }
@@ -147,7 +147,7 @@ TEST(Bus, SchemaMismatchIsCountedWithThePeerVersion) {
   Bus bus("memq://");
   auto& sub = bus.subscribe<lcmt_feedback>("F", [](const lcmt_feedback&, const std::string&) {});
   lcmt_feedback f{};
-  stamp(f);
+  stamp(f, 7);
   f.schema_version = 3;
   ASSERT_EQ(bus.publish("F", f), 0);
   ASSERT_TRUE(handle_until(bus, [&] { return sub.stats().received.load() == 1; }));
@@ -162,7 +162,7 @@ TEST(Bus, ThrowingCallbackIsContained) {
     throw std::runtime_error("boom");
   });
   lcmt_feedback f{};
-  stamp(f);
+  stamp(f, 7);
   ASSERT_EQ(bus.publish("F", f), 0);
   ASSERT_TRUE(handle_until(bus, [&] { return sub.stats().received.load() == 1; }));
   EXPECT_EQ(sub.stats().handler_errors.load(), 1);
@@ -176,7 +176,7 @@ TEST(Bus, HandlerThreadDeliversWhileOtherThreadsPublish) {
   constexpr int kN = 2000;
   for (int i = 1; i <= kN; ++i) {
     lcmt_device_state m{};
-    stamp(m);
+    stamp(m, 7);
     m.seq = i;
     ASSERT_EQ(bus.publish("D", m), 0);
   }

@@ -18,7 +18,7 @@ int32_t ri() { return std::uniform_int_distribution<int32_t>(-100000, 100000)(rn
 int64_t rl() { return std::uniform_int_distribution<int64_t>()(rng); }
 
 lcmt_device_state make(lcmt_device_state* m) {
-  stamp(*m, rl());
+  stamp(*m, rl(), rl());
   m->seq = rl();
   m->device_id = ri();
   for (auto& x : m->position_m) x = rd();
@@ -28,7 +28,7 @@ lcmt_device_state make(lcmt_device_state* m) {
   return *m;
 }
 lcmt_feedback make(lcmt_feedback* m) {
-  stamp(*m, rl());
+  stamp(*m, rl(), rl());
   m->seq = rl();
   m->device_id = ri();
   m->echo_device_seq = rl();
@@ -39,7 +39,7 @@ lcmt_feedback make(lcmt_feedback* m) {
   return *m;
 }
 lcmt_user_force make(lcmt_user_force* m) {
-  stamp(*m, rl());
+  stamp(*m, rl(), rl());
   m->seq = rl();
   m->user_id = ri();
   m->grab_body = ri();
@@ -59,11 +59,12 @@ lcmt_coupling_snapshot make(lcmt_coupling_snapshot* m) {
   for (int i = 0; i < 500; ++i) s.values.push_back(rd());
   to_lcmt(s, *m);
   m->utime = rl();
+  m->instance_id = rl();
   m->user_id = ri();
   return *m;
 }
 lcmt_scene_state make(lcmt_scene_state* m) {
-  stamp(*m, rl());
+  stamp(*m, rl(), rl());
   m->version = rl();
   m->sim_time = rd();
   m->nbodies = 17;
@@ -77,7 +78,7 @@ lcmt_scene_state make(lcmt_scene_state* m) {
   return *m;
 }
 lcmt_process_stats make(lcmt_process_stats* m) {
-  stamp(*m, rl());
+  stamp(*m, rl(), rl());
   m->seq = rl();
   m->process_name = "coupler";
   m->process_id = 3;
@@ -118,7 +119,12 @@ TYPED_TEST(LcmTypes, RoundTripIsByteExactAndSchemaAtByte8) {
   int32_t schema = -1;
   ASSERT_TRUE(peek_schema_version(bytes.data(), bytes.size(), &schema));
   EXPECT_EQ(schema, TypeParam::SCHEMA_VERSION);
-  EXPECT_EQ(schema, 1);
+  EXPECT_EQ(schema, 2);
+  // instance_id right after utime: readable at byte 20 without decoding (origin checks, duplicate writers).
+  int64_t inst = 0;
+  ASSERT_TRUE(peek_instance_id(bytes.data(), bytes.size(), &inst));
+  EXPECT_EQ(inst, m.instance_id);
+  EXPECT_NE(m.instance_id, 0);
   int64_t fp = 0;
   ASSERT_TRUE(peek_fingerprint(bytes.data(), bytes.size(), &fp));
   EXPECT_EQ(fp, TypeParam::getHash());
@@ -126,6 +132,7 @@ TYPED_TEST(LcmTypes, RoundTripIsByteExactAndSchemaAtByte8) {
   TypeParam back{};
   ASSERT_EQ(decode_checked(bytes.data(), bytes.size(), back), DecodeResult::kOk);
   EXPECT_EQ(back.utime, m.utime);
+  EXPECT_EQ(back.instance_id, m.instance_id);
   EXPECT_EQ(encode(back), bytes);  // every field survived (doubles bit-exact)
 
   // A schema_version other than this build's decodes but is refused, and is readable at byte 8.
@@ -166,6 +173,43 @@ TYPED_TEST(LcmTypes, CorruptedBodyAfterRightFingerprintNeverThrowsOrBalloons) {
   }
   ::testing::Test::RecordProperty("accepted_after_corruption", ok);
   EXPECT_LT(back.getEncodedSize(), 4 * static_cast<int>(bytes.size()) + 1024);
+}
+
+// counts_plausible reads the variable-length counts at fixed offsets that follow the field order of the
+// .lcm files: check each offset against an encoded message whose counts are known.
+int32_t be32_at(const std::vector<uint8_t>& b, size_t off) {
+  return static_cast<int32_t>((uint32_t(b[off]) << 24) | (uint32_t(b[off + 1]) << 16) | (uint32_t(b[off + 2]) << 8) |
+                              uint32_t(b[off + 3]));
+}
+TEST(LcmTypes, CountOffsetsOfThePlausibilityGuardFollowTheFieldOrder) {
+  lcmt_coupling_snapshot snap{};
+  make(&snap);
+  EXPECT_EQ(be32_at(encode(snap), 56), 3);    // n_grabs
+  lcmt_scene_state scene{};
+  make(&scene);
+  EXPECT_EQ(be32_at(encode(scene), 44), 17);  // nbodies
+  lcmt_process_stats stats{};
+  make(&stats);
+  EXPECT_EQ(be32_at(encode(stats), 36), 8);   // strlen("coupler") + NUL
+  // A count far beyond the message is refused before decode() would resize() for it.
+  for (auto [bytes, off] : {std::pair{encode(snap), size_t(56)}, std::pair{encode(scene), size_t(44)},
+                            std::pair{encode(stats), size_t(36)}}) {
+    bytes[off] = 0x7f;
+    lcmt_coupling_snapshot a;
+    lcmt_scene_state b;
+    lcmt_process_stats c;
+    const DecodeResult r = off == 56 ? decode_checked(bytes.data(), bytes.size(), a)
+                           : off == 44 ? decode_checked(bytes.data(), bytes.size(), b)
+                                       : decode_checked(bytes.data(), bytes.size(), c);
+    EXPECT_EQ(r, DecodeResult::kMalformed) << off;
+  }
+}
+
+TEST(LcmTypes, InstanceIdsAreNonzeroAndDistinct) {
+  std::set<int64_t> ids;
+  for (int i = 0; i < 1000; ++i) ids.insert(new_instance_id());
+  EXPECT_EQ(ids.size(), 1000u);
+  EXPECT_EQ(ids.count(0), 0u);
 }
 
 TEST(LcmTypes, FingerprintsAreDistinct) {

@@ -54,7 +54,7 @@ TEST(Udpm, RoundTripAndRejectedGarbageInsidePrivateNamespace) {
         CHILD_CHECK(bus.publish_raw(ch, b.data(), static_cast<int>(b.size())) == 0, fd, "publish_raw failed");
       }
       lcmt_device_state m{};
-      stamp(m);
+      stamp(m, 7);
       m.seq = 77;
       m.position_m[0] = 0.125;
       CHILD_CHECK(bus.publish(ch, m) == 0, fd, "publish failed");

@@ -28,7 +28,7 @@ struct TempChannel {
 
 lcmt_device_state state_with(int64_t k) {
   lcmt_device_state m{};
-  stamp(m, k);
+  stamp(m, 7, k);
   m.seq = k;
   for (auto& x : m.position_m) x = static_cast<double>(k);
   for (auto& x : m.orientation) x = static_cast<double>(k);
@@ -94,7 +94,7 @@ TEST(ShmChannel, GarbageIsRejectedAndCounted) {
   }
   EXPECT_EQ(r.rejected(), 500);
   lcmt_feedback good{};
-  stamp(good);
+  stamp(good, 7);
   good.seq = 9;
   ASSERT_TRUE(w.write_msg(good));
   ASSERT_EQ(r.read_msg(m), ShmRead::kNew);
@@ -165,7 +165,7 @@ TEST(ShmChannel, BetweenTwoProcesses) {
   }
   EXPECT_EQ(last, kWrites);
   lcmt_feedback f{};
-  stamp(f);
+  stamp(f, 7);
   f.echo_device_seq = last;
   ASSERT_TRUE(back.write_msg(f));
   deadline = std::chrono::steady_clock::now() + 10s;

@@ -227,7 +227,7 @@ TEST(Embedded, ForeignFingerprintAndStaleVersionsIgnored) {
     snap.version = version;
     lcmt_coupling_snapshot m;
     bus::to_lcmt(snap, m);
-    bus::stamp(m);
+    bus::stamp(m, 42);
     bus.publish(bus::channel::coeffs(0), m);
     std::this_thread::sleep_for(20ms);
   };
