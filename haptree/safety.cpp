@@ -20,6 +20,10 @@ Vec3 clamp_norm(const Vec3& v, double max_norm, bool* clamped) noexcept {
   const double n = v.norm();
   if (n <= max_norm) return v;
   if (clamped) *clamped = true;
+  if (!std::isfinite(n)) {   // |v|^2 overflowed (e.g. 1e300): scale first, or the result would be zero
+    const Vec3 u = v / v.cwiseAbs().maxCoeff();
+    return u * (max_norm / u.norm());
+  }
   return v * (max_norm / n);
 }
 

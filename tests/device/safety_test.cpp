@@ -26,6 +26,12 @@ TEST(Safety, ClampNorm) {
   EXPECT_TRUE(clamped);
   EXPECT_EQ(clamp_norm(Vec3(kInf, 0, 0), 10), Vec3::Zero());
   EXPECT_EQ(clamp_norm(f, kNaN), Vec3::Zero());
+  // A finite vector whose squared norm overflows is clamped to the limit, not to zero.
+  EXPECT_EQ(clamp_norm(Vec3(1e300, 0, 0), 3.0, &clamped), Vec3(3.0, 0, 0));
+  EXPECT_TRUE(clamped);
+  const Vec3 big = clamp_norm(Vec3(-1e300, 1e300, 0), 2.0);
+  EXPECT_NEAR(big.norm(), 2.0, 1e-15);
+  EXPECT_NEAR(big.x(), -std::sqrt(2.0), 1e-15);
   EXPECT_EQ(clamp_norm(f, -1), Vec3::Zero());
 }
 
