@@ -1,28 +1,60 @@
 #!/usr/bin/env bash
 # Measures the coupler watchdog's false trips on this machine for several --stale-after-s values
-# (issue 11, defect 3): runs `haptree_run --processes` (the real sim_server, coupler and device_bridge
-# executables: device link over shared memory, the rest over the launcher's 127.0.0.1 tcpq hub) for
-# DURATION seconds per value and prints, from the coupler's final log line, the watchdog trips per second
-# and the fraction of feedback sent while grabbing that the watchdog zeroed. Nothing was stopped or
-# delayed on purpose: every trip is a false one.
+# (issue 11, defect 3), with the by-hand commands of docs/processes.md: sim_server, coupler (default
+# busy-wait pacing at 10 kHz) and device_bridge as separate processes over udpm ttl=0, device link over
+# shared memory. udpm stays inside a private network namespace (`unshare -n`, multicast route on lo): needs
+# root. The scripted user grabs the last body of protein_like(64) and holds the pull for the whole run;
+# nothing is stopped or delayed on purpose, so every watchdog trip is a false one. The coupler is stopped
+# first, so the shutdown itself trips nothing. Prints, per value: watchdog trips, trips per second, the
+# feedback sent while grabbing that the watchdog zeroed (count and fraction), server restarts taken, the
+# longest gap between two USER_FORCE messages seen by sim_server, and the 1-minute load average.
 #   scripts/measure_stale_after.sh [BUILD_DIR] [DURATION_S] [VALUES...]
 set -euo pipefail
-build=${1:-build}
+build=$(realpath "${1:-build}")
 duration=${2:-12}
 shift 2 2>/dev/null || true
 values=("$@")
 [ ${#values[@]} -gt 0 ] || values=(0.005 0.01 0.02 0.05 0.1)
-printf "%-14s %8s %10s %14s %12s %10s\n" stale_after_s trips trips_per_s zeroed_feedback fraction restarts
+if [ -z "${HAPTREE_IN_NETNS:-}" ]; then
+  exec unshare -n env HAPTREE_IN_NETNS=1 bash "$0" "$build" "$duration" "${values[@]}"
+fi
+ip link set lo up
+ip link set lo multicast on
+ip route add 224.0.0.0/4 dev lo
+url="udpm://239.255.76.67:7667?ttl=0"
+# Grab geometry: the device's grab waypoint (0, 0, 0.01 m) x position scale 10 onto the last body at q = 0.
+# The body's origin comes from the launcher's embedded run (its coupler logs the offset it was given).
+probe=$(mktemp -d /tmp/stale_after.XXXXXX)
+"$build/tools/haptree_run" --duration-s 1 --n 64 >"$probe/run.out" 2>&1
+body=$(sed -nE 's/.*pulling bodies ([0-9]+).*/\1/p' "$probe/run.out" | head -1)
+read -r ox oy oz < <(sed -nE 's/.*mapping: scene = [0-9.]+ x device_m \+ \[([^ ]+) ([^ ]+) ([^]]+)\].*/\1 \2 \3/p' \
+                     "$probe/run.out" | head -1)
+rm -rf "$probe"
+echo "protein_like(64): grab body $body, offset $ox $oy $oz; ${duration} s per value"
+printf "%-14s %6s %11s %17s %10s %9s %14s %6s\n" stale_after_s trips trips_per_s zeroed_feedback fraction restarts \
+  uf_gap_max_ms load1
 for s in "${values[@]}"; do
   dir=$(mktemp -d /tmp/stale_after.XXXXXX)
-  "$build/tools/haptree_run" --processes --duration-s "$duration" --stale-after-s "$s" --log-dir "$dir" >"$dir/run.out" 2>&1 || {
-    echo "haptree_run failed for $s (see $dir)"; continue; }
-  line=$(grep -h "coupler: .* iterations" "$dir/coupler_0.log" | tail -1)
+  "$build/sim_server/sim_server" --lcm-url "$url" --scene protein_like --n 64 --rate-hz 1000 >"$dir/sim.log" 2>&1 &
+  sim=$!
+  "$build/coupler/coupler" --lcm-url "$url" --grab-body "$body" --offset "$ox" "$oy" "$oz" --shm \
+    --stale-after-s "$s" >"$dir/coupler.log" 2>&1 &
+  cpl=$!
+  "$build/device_bridge/device_bridge" --lcm-url "$url" --kind scripted --shm --option hold_s=600 \
+    >"$dir/device.log" 2>&1 &
+  dev=$!
+  sleep "$duration"
+  kill -TERM "$cpl"; wait "$cpl" || true
+  kill -TERM "$dev" "$sim"; wait "$dev" "$sim" || true
+  line=$(grep -h "coupler: .* iterations" "$dir/coupler.log" | tail -1)
   trips=$(sed -E 's/.* ([0-9]+) watchdog trips.*/\1/' <<<"$line")
   restarts=$(sed -E 's/.* ([0-9]+) restarts.*/\1/' <<<"$line")
   zeros=$(sed -E 's/.* ([0-9]+) of ([0-9]+) feedbacks while grabbing.*/\1/' <<<"$line")
   grab=$(sed -E 's/.* ([0-9]+) of ([0-9]+) feedbacks while grabbing.*/\2/' <<<"$line")
-  awk -v s="$s" -v t="$trips" -v d="$duration" -v z="$zeros" -v g="$grab" -v r="$restarts" \
-    'BEGIN { printf "%-14s %8d %10.2f %8d/%-8d %11.3f%% %10d\n", s, t, t / d, z, g, g ? 100 * z / g : 0, r }'
+  gap=$(grep -h "longest USER_FORCE gap" "$dir/sim.log" | tail -1 | sed -E 's/.*gap ([0-9.]+) ms.*/\1/')
+  load=$(cut -d' ' -f1 /proc/loadavg)
+  awk -v s="$s" -v t="$trips" -v d="$duration" -v z="$zeros" -v g="$grab" -v r="$restarts" -v gap="${gap:-nan}" \
+    -v load="$load" 'BEGIN { printf "%-14s %6d %11.2f %8d/%-8d %9.3f%% %9d %14s %6s\n", s, t, t / d, z, g,
+                             g ? 100 * z / g : 0, r, gap, load }'
   rm -rf "$dir"
 done

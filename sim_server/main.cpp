@@ -63,7 +63,12 @@ int main(int argc, char** argv) {
     haptree::SimServer server(bus, o);
     const int rc = server.run(g_stop);
     handler.stop();
-    spdlog::info("sim_server: {} steps, {} snapshots", server.steps_done(), server.snapshots_published());
+    const auto& k = server.counters();
+    spdlog::info("sim_server: {} steps, {} snapshots, {} user forces in, {} user-force watchdog trips, longest "
+                 "USER_FORCE gap {:.1f} ms, {} clamped, {} non-finite, {} refused",
+                 server.steps_done(), server.snapshots_published(), k.user_forces_in.load(), k.watchdog_events.load(),
+                 1e3 * k.user_force_gap_max_s.load(), k.clamp_events.load(), k.nonfinite_events.load(),
+                 k.foreign_rejected.load());
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

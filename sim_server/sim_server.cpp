@@ -163,7 +163,11 @@ double SimServer::applied_user_force_norm(int u) const {
 void SimServer::take_user_force(UserSlot& u, double now) {
   if (u.box.update()) {
     u.latest = u.box.front();
-    if (u.last_in_s >= 0) u.max_gap_s = std::max(u.max_gap_s, now - u.last_in_s);
+    if (u.last_in_s >= 0) {
+      u.max_gap_s = std::max(u.max_gap_s, now - u.last_in_s);
+      if (now - u.last_in_s > c_.user_force_gap_max_s.load(std::memory_order_relaxed))
+        c_.user_force_gap_max_s.store(now - u.last_in_s, std::memory_order_relaxed);
+    }
     u.last_in_s = now;
     Vec6 f;
     for (int i = 0; i < 6; ++i) f[i] = u.latest.force[i];
