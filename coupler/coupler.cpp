@@ -131,6 +131,7 @@ bool Coupler::take_pose(const lcmt_device_state& m, double now_s) {
     c_.device_restarts.fetch_add(1, std::memory_order_relaxed);
     newest_pose_seq_ = -1;
   }
+  if (o != bus::Origin::kSame) followed_device_.store(m.instance_id, std::memory_order_relaxed);
   if (m.seq <= newest_pose_seq_) {   // reordered: an older reading of the same device
     c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
     return false;
@@ -155,7 +156,7 @@ void Coupler::report_problems() {
     spdlog::warn("coupler {}: refused {} DEVICE_STATE message(s) from a device instance other than the one "
                  "this coupler follows ({:016x}) while it is live: two device_bridges on --device {}, or a stray "
                  "publisher. They cannot press or release the grab.",
-                 opt_.user, refused_device_.load(), static_cast<uint64_t>(device_lock_.locked()), opt_.device);
+                 opt_.user, refused_device_.load(), static_cast<uint64_t>(followed_device_.load()), opt_.device);
   }
   if (!warned_bad_pose_ && bad_pose_value_.load()) {
     warned_bad_pose_ = true;
@@ -167,7 +168,7 @@ void Coupler::report_problems() {
   if (c_.device_restarts.load() != reported_device_restarts_) {
     reported_device_restarts_ = c_.device_restarts.load();
     spdlog::info("coupler {}: now following device instance {:016x} (the previous one went silent)", opt_.user,
-                 static_cast<uint64_t>(device_lock_.locked()));
+                 static_cast<uint64_t>(followed_device_.load()));
   }
   if (!warned_writer_ && c_.other_feedback_writer.load() > 0) {
     warned_writer_ = true;
@@ -325,9 +326,12 @@ bool Coupler::iterate(double now) {
   int64_t version = -1;
   double age = pose_time_s_ >= 0 ? now - pose_time_s_ : 1e9;
   if (grabbing_) {
-    const double snap_t = snapshot_recv_s_.load(std::memory_order_acquire);
-    age = std::max(age, snap_t >= 0 ? now - snap_t : 1e9);
+    // The snapshot's age counts once coefficients for this grab are in use. Before the first one arrives
+    // (the server has not seen the grab yet) the force is zero anyway: that is not a stale input, and
+    // counting it made every grab a watchdog trip with a 100 ms ramp-in.
     if (snap.version >= 0 && snap.grabs.size() == 1 && snap.grabs[0].body == body_) {
+      const double snap_t = snapshot_recv_s_.load(std::memory_order_acquire);
+      age = std::max(age, snap_t >= 0 ? now - snap_t : 1e9);
       CouplingInputs in{x_dev, v_dev};
       bool clamped = false;
       if (coupler_feedback(opt_, snap, in, ws_, f_u_, f_feed_, force_n, &clamped) != CouplingStatus::kOk)

@@ -105,7 +105,7 @@ class Coupler {
   std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
   bus::OriginLock device_lock_;        // pose thread (handler for LCM, loop for shm): one device instance
   int64_t newest_pose_seq_ = -1;
-  std::atomic<int64_t> refused_device_{0}, refused_writer_{0};
+  std::atomic<int64_t> refused_device_{0}, refused_writer_{0}, followed_device_{0};
   std::atomic<bool> bad_pose_value_{false};
   bool warned_device_ = false, warned_bad_pose_ = false, warned_writer_ = false, warned_clamp_ = false;
   int64_t reported_device_restarts_ = 0;  lcmt_device_state pose_{}, shm_pose_msg_{};
