@@ -64,7 +64,7 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
                      [this](const void* d, uint32_t n, const std::string&) { on_snapshot(d, n); });
   const std::string ch_pose = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   if (opt_.shm) {
-    shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose);
+    shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose, opt_.stale_after_s);   // no pose of a dead device
     shm_feedback_ = std::make_unique<bus::ShmWriter>(ch_feedback_);
   } else {
     bus_.subscribe<lcmt_device_state>(ch_pose, [this](const lcmt_device_state& m, const std::string&) {

@@ -33,7 +33,8 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options) : 
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
   if (opt_.shm) {
     shm_state_ = std::make_unique<bus::ShmWriter>(ch_state_);
-    shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_);
+    // Never a FEEDBACK older than the feedback timeout, nor one of a dead or earlier coupler.
+    shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_, opt_.feedback_timeout_s);
   } else {
     bus_.subscribe<lcmt_feedback>(ch_feedback_, [this](const lcmt_feedback& m, const std::string&) {
       fb_box_.write(m);
