@@ -352,7 +352,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              "pull_distance_m=" + fmt_d(se.pull_distance_m), "--option",
                              std::string("pull_direction=") + (u % 2 == 0 ? "1,0,0" : "0,1,0"), "--option",
                              "hold_s=" + fmt_d(std::max(0.5, se.duration_s - 3.0))});
-      if (shm) dev.push_back("--shm");
+      if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
       const std::string du = "device_bridge_" + std::to_string(u);
       children.push_back({du, log_dir + "/" + du + ".log"});
       children.back().pid = spawn(dev, children.back().log);
