@@ -6,6 +6,7 @@
 #include <cmath>
 #include <limits>
 #include <stdexcept>
+#include <random>
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
@@ -64,6 +65,48 @@ CouplingStatus coupler_feedback(const CouplerOptions& o, const CouplingSnapshot&
   return st;
 }
 
+void to_settings(const CouplerOptions& o, int64_t instance_id, lcmt_coupler_settings& m) {
+  bus::stamp(m);
+  m.instance_id = instance_id;
+  m.user_id = o.user;
+  m.device_id = o.device;
+  m.stiffness = o.stiffness;
+  m.damping = o.damping;
+  m.position_scale = o.position_scale;
+  m.force_scale = o.force_scale;
+  for (int i = 0; i < 3; ++i) m.offset[i] = o.offset[i];
+  m.grab_body = o.grab_body;
+  m.max_force_n = o.max_force_n;
+  m.stale_after_s = o.stale_after_s;
+  m.rate_hz = o.rate_hz;
+  m.user_force_rate_hz = o.user_force_rate_hz;
+  m.model_fingerprint = bus::fingerprint_to_wire(o.model_fingerprint);
+  m.shm = o.shm;
+}
+
+void from_settings(const lcmt_coupler_settings& m, CouplerOptions& o) {
+  o.user = m.user_id;
+  o.device = m.device_id;
+  o.stiffness = m.stiffness;
+  o.damping = m.damping;
+  o.position_scale = m.position_scale;
+  o.force_scale = m.force_scale;
+  o.offset = Vec3(m.offset[0], m.offset[1], m.offset[2]);
+  o.grab_body = m.grab_body;
+  o.max_force_n = m.max_force_n;
+  o.stale_after_s = m.stale_after_s;
+  o.rate_hz = m.rate_hz;
+  o.user_force_rate_hz = m.user_force_rate_hz;
+  o.model_fingerprint = bus::fingerprint_from_wire(m.model_fingerprint);
+  o.shm = m.shm;
+}
+
+static int64_t random_instance_id() {
+  std::random_device rd;
+  const uint64_t v = (static_cast<uint64_t>(rd()) << 32) ^ rd() ^ static_cast<uint64_t>(Clock::now().time_since_epoch().count());
+  return static_cast<int64_t>(v == 0 ? 1 : v);
+}
+
 static WatchdogParams watchdog_params(const CouplerOptions& o) {
   WatchdogParams w;
   w.stale_after_s = o.stale_after_s;
@@ -92,7 +135,7 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
                      [this](const void* d, uint32_t n, const std::string&) { on_snapshot(d, n); });
   const std::string ch_pose = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   if (opt_.shm) {
-    shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose);
+    shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose, opt_.stale_after_s);   // no pose of a dead device
     shm_feedback_ = std::make_unique<bus::ShmWriter>(ch_feedback_);
     shm_feedback_check_ = std::make_unique<bus::ShmReader>(ch_feedback_);
   } else {
@@ -104,6 +147,8 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
     });
   }
   bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_);
+  ch_settings_ = bus::channel::coupler_settings(opt_.user, opt_.channel_suffix);
+  to_settings(opt_, random_instance_id(), settings_msg_);
   spdlog::info(
       "coupler {}: device {}, k_s {} b_s {}, mapping: scene = {} x device_m + [{} {} {}], force_n = {} x scene "
       "force, clamp {} N, {} Hz, link {}",
@@ -417,10 +462,17 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   report_problems();
 }
 
+void Coupler::publish_settings() {
+  settings_msg_.utime = bus::now_utime();
+  bus_.publish(ch_settings_, settings_msg_);
+}
+
 int Coupler::run(const std::atomic<bool>& stop) {
   const double period = 1.0 / opt_.rate_hz;
   double next = since(kEpoch);
   double next_stats = next + 1.0, stats_start = next;
+  publish_settings();
+  double next_settings = next + kSettingsEvery_s;
   int64_t it_at_stats = 0, it = 0;
   while (!stop.load(std::memory_order_relaxed)) {
     const double now = since(kEpoch);
@@ -432,6 +484,10 @@ int Coupler::run(const std::atomic<bool>& stop) {
       it_at_stats = it;
       stats_start = now;
       next_stats += 1.0;
+      if (now >= next_settings) {   // again, for a logger that started late
+        publish_settings();
+        next_settings += kSettingsEvery_s;
+      }
     }
     next += period;
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up

@@ -15,6 +15,7 @@
 #include "haptree/bus/origin.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "haptree/coupling.hpp"
+#include "haptree/lcmt_coupler_settings.hpp"
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/lcmt_scene_state.hpp"
@@ -80,6 +81,7 @@ class Coupler {
   void publish_stats(double period_s, int64_t iterations);
   bool take_pose(const lcmt_device_state& m, double now_s);   // origin + sanity; false = refused
   void report_problems();                                     // once-only warnings, outside the loop
+  void publish_settings();   // HAPTREE_COUPLER_SETTINGS_<user>: at start, then every kSettingsEvery_s
 
   bus::Bus& bus_;
   CouplerOptions opt_;
@@ -127,7 +129,15 @@ class Coupler {
   Vec6 f_feed_ = Vec6::Zero();
   bus::LatencyHistogram hist_;
   std::string ch_feedback_, ch_user_force_, ch_stats_;
+  // settings message (replay_coupling reads it from the log), built once
+  static constexpr double kSettingsEvery_s = 5.0;
+  lcmt_coupler_settings settings_msg_{};
+  std::string ch_settings_;
 };
+
+// The settings message of a coupler's options, and back (replay_coupling). to_settings stamps it.
+void to_settings(const CouplerOptions& o, int64_t instance_id, lcmt_coupler_settings& m);
+void from_settings(const lcmt_coupler_settings& m, CouplerOptions& o);
 
 // The coupling computation of one loop iteration as a pure function of the logged inputs, shared by
 // the coupler and tools/replay_coupling: device point (device metres) -> feedback force (N, clamped,

@@ -43,7 +43,8 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
   if (opt_.shm) {
     shm_state_ = std::make_unique<bus::ShmWriter>(ch_state_);
-    shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_);
+    // Never a FEEDBACK older than the feedback timeout, nor one of a dead or earlier coupler.
+    shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_, opt_.feedback_timeout_s);
   } else {
     bus_.subscribe<lcmt_feedback>(ch_feedback_, [this](const lcmt_feedback& m, const std::string&) {
       const double t = now_s();
@@ -123,9 +124,18 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       sent_s_[static_cast<size_t>(r.seq % kRing)].store(now_s(), std::memory_order_release);
       if (shm_state_) {
         shm_state_->write_msg(msg);
+        shm_states_[static_cast<size_t>(msg.seq % kStateRing)] = msg;
         if (opt_.mirror_rate_hz > 0 && t >= next_mirror) {
-          bus_.publish(ch_state_, msg);
-          if (fb_shm_.seq > 0) bus_.publish(ch_feedback_, fb_shm_);
+          // Mirror pairs the coupler actually used: the newest FEEDBACK with the device state it answers,
+          // so every mirrored FEEDBACK can be replayed (replay_coupling) whatever the mirror rate.
+          const lcmt_device_state& used = shm_states_[static_cast<size_t>(fb_shm_.echo_device_seq % kStateRing)];
+          if (fb_shm_.seq > mirrored_feedback_seq_ && fb_shm_.echo_device_seq > 0 && used.seq == fb_shm_.echo_device_seq) {
+            bus_.publish(ch_state_, used);
+            bus_.publish(ch_feedback_, fb_shm_);
+            mirrored_feedback_seq_ = fb_shm_.seq;
+          } else {
+            bus_.publish(ch_state_, msg);
+          }
           next_mirror = t + 1.0 / opt_.mirror_rate_hz;
         }
       } else {

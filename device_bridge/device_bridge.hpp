@@ -71,6 +71,10 @@ class DeviceBridge {
   bus::LatestValue<lcmt_feedback> fb_box_;
   lcmt_feedback fb_{}, fb_shm_{}, fb_scratch_{};
   std::string ch_state_, ch_feedback_;
+  // Device states written to shared memory, by seq: the mirror publishes the one a FEEDBACK answers.
+  static constexpr int kStateRing = 256;
+  std::array<lcmt_device_state, kStateRing> shm_states_{};
+  int64_t mirrored_feedback_seq_ = 0;
   static constexpr int kRing = 8192;
   std::array<std::atomic<double>, kRing> sent_s_{};
   std::atomic<int64_t> last_echo_{0};

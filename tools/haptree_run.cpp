@@ -84,6 +84,11 @@ int main(int argc, char** argv) {
                  "udpm = everything over udpm ttl=0, refused unless haptree_run runs in a private network "
                  "namespace (e.g. `unshare -n` with a multicast route on lo)")
       ->check(CLI::IsMember({"shm", "udpm"}))->capture_default_str();
+  double mirror_rate_hz = 100;
+  app.add_option("--mirror-rate-hz", mirror_rate_hz,
+                 "--processes --transport shm: rate at which each device_bridge republishes on the bus a FEEDBACK and "
+                 "the device state it answers (what lcm-logger records and replay_coupling replays); 0: off")
+      ->check(CLI::Range(0.0, 10000.0))->capture_default_str();
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
   CLI11_PARSE(app, argc, argv);
@@ -112,6 +117,7 @@ int main(int argc, char** argv) {
     se.max_force_n = max_force_n;
     se.pull_distance_m = pull_distance_m;
     se.stale_after_s = stale_after_s;
+    se.mirror_rate_hz = mirror_rate_hz;
     return haptree::tools::run_processes(po, se, g_stop);
   }
   try {

@@ -224,8 +224,16 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     for (auto& c : children)
       if (!c.reaped && c.pid > 0 && ::waitpid(c.pid, &c.status, 0) == c.pid) c.reaped = true;
   };
+  // The session's shared-memory segments, unlinked once the children are reaped (a child killed by a
+  // signal cannot unlink its own).
+  std::vector<std::string> segments;
+  auto remove_segments = [&segments] {
+    for (const auto& ch : segments) bus::ShmChannel::remove(ch);
+  };
   try {
     const bool shm = po.transport == "shm";
+    for (const auto& r : bus::reclaim_stale_shm_segments())
+      spdlog::info("haptree_run: removed the leftover shared-memory segment {}", r);
     const std::string exe_sim = find_executable("sim_server", po.bin_dir, po.argv0);
     const std::string exe_cpl = find_executable("coupler", po.bin_dir, po.argv0);
     const std::string exe_dev = find_executable("device_bridge", po.bin_dir, po.argv0);
@@ -274,6 +282,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     }
     // A suffix of its own: the shared-memory segments and channels of two launchers never mix.
     const std::string suffix = "_R" + std::to_string(::getpid());
+    if (shm)
+      for (int u = 0; u < se.users; ++u)
+        segments.insert(segments.end(), {bus::channel::device_state(u, suffix), bus::channel::feedback(u, suffix)});
     auto bus_owner = std::make_unique<bus::Bus>(url);   // destroyed before the hub (it unsubscribes)
     bus::Bus& bus = *bus_owner;
     Stats stats;
@@ -345,7 +356,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              "pull_distance_m=" + fmt_d(se.pull_distance_m), "--option",
                              std::string("pull_direction=") + (u % 2 == 0 ? "1,0,0" : "0,1,0"), "--option",
                              "hold_s=" + fmt_d(std::max(0.5, se.duration_s - 3.0))});
-      if (shm) dev.push_back("--shm");
+      if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
       const std::string du = "device_bridge_" + std::to_string(u);
       children.push_back({du, log_dir + "/" + du + ".log"});
       children.back().pid = spawn(dev, children.back().log);
@@ -414,6 +425,8 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       std::fprintf(stderr, "haptree_run: stopping the other children\n");
     }
     terminate_all(5.0);
+    fb_readers.clear();
+    remove_segments();
     handler.stop();
     bus_owner.reset();
     if (hub) hub->stop();
@@ -466,6 +479,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     return 0;
   } catch (const std::exception& e) {
     terminate_all(2.0);
+    remove_segments();
     spdlog::critical("haptree_run --processes: {}", e.what());
     return 1;
   }

@@ -25,6 +25,7 @@ struct SessionOptions {
   double position_scale = 10, force_scale = 0.5, stiffness = 20, damping = 0, max_force_n = 3;
   double pull_distance_m = 0.03;
   double stale_after_s = 0.05;   // coupler watchdog (haptree_run passes the coupler's default)
+  double mirror_rate_hz = 100;   // device_bridge's shm -> LCM mirror (FEEDBACK + the state it answers)
 };
 
 // "" if this process runs in a network namespace other than PID 1's and without a default route

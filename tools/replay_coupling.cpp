@@ -1,7 +1,8 @@
 // replay_coupling: re-runs the coupler's computation on the snapshots and device poses of an LCM log and
 // compares with the logged FEEDBACK forces. Each FEEDBACK carries the snapshot version and the device seq
 // it was computed from; forces rendered while the watchdog ramp was active (time-dependent gain) or with a
-// non-finite input are skipped and counted. The coupler options must match the recorded session.
+// non-finite input are skipped and counted. The coupler options are read from the log (the coupler publishes
+// them as lcmt_coupler_settings); options given on the command line override them.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 #include <spdlog/spdlog.h>
@@ -26,28 +27,39 @@ int main(int argc, char** argv) {
   std::string suffix;
   app.add_option("log", log, "LCM log file (lcm-logger or lcm::LogFile)")->required();
   app.add_option("--user", o.user, "user id")->capture_default_str();
-  app.add_option("--device", o.device, "device id")->capture_default_str();
-  app.add_option("--stiffness", o.stiffness, "k_s of the session")->capture_default_str();
-  app.add_option("--damping", o.damping, "b_s of the session")->capture_default_str();
-  app.add_option("--position-scale", o.position_scale, "scene length per device metre")->capture_default_str();
-  app.add_option("--force-scale", o.force_scale, "N per scene force unit")->capture_default_str();
-  app.add_option("--offset", offset, "scene position of the device origin")->expected(3);
-  app.add_option("--max-force-n", o.max_force_n, "force clamp of the session")->capture_default_str();
+  app.add_option("--device", o.device, "device id (default: the one in the logged coupler settings)");
+  // The session's coupler settings come from the log (HAPTREE_COUPLER_SETTINGS_<user>); these override.
+  std::vector<CLI::Option*> overrides = {
+      app.add_option("--stiffness", o.stiffness, "k_s of the session"),
+      app.add_option("--damping", o.damping, "b_s of the session"),
+      app.add_option("--position-scale", o.position_scale, "scene length per device metre"),
+      app.add_option("--force-scale", o.force_scale, "N per scene force unit"),
+      app.add_option("--offset", offset, "scene position of the device origin")->expected(3),
+      app.add_option("--max-force-n", o.max_force_n, "force clamp of the session")};
   app.add_option("--tolerance", tolerance, "max allowed deviation, N")->capture_default_str();
   app.add_option("--channel-suffix", suffix, "channel suffix of the session");
+  app.footer("The coupler's settings (gains, mapping, clamp) are read from the log's HAPTREE_COUPLER_SETTINGS_<user> "
+             "messages (the newest one before each FEEDBACK); an option given here overrides the logged value. "
+             "Logs without settings messages need every option of the session.");
   CLI11_PARSE(app, argc, argv);
-  o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
+  const bool device_given = app.count("--device") > 0;
   namespace ch = haptree::bus::channel;
-  const std::string c_snap = ch::coeffs(o.user, suffix), c_state = ch::device_state(o.device, suffix),
-                    c_fb = ch::feedback(o.device, suffix);
   lcm::LogFile file(log, "r");
   if (!file.good()) {
     spdlog::critical("cannot open log '{}'", log);
     return 2;
   }
+  const std::string c_settings = ch::coupler_settings(o.user, suffix), c_snap = ch::coeffs(o.user, suffix);
   std::map<int64_t, haptree::CouplingSnapshot> snaps;
   std::map<int64_t, haptree::lcmt_device_state> states;
-  std::vector<haptree::lcmt_feedback> feedback;
+  std::vector<haptree::lcmt_coupler_settings> settings;
+  std::vector<std::pair<haptree::lcmt_feedback, int>> feedback;   // with the index of the settings in force
+  struct DeviceEvent {   // device channels, decoded once the device id is known (from the settings)
+    std::string channel;
+    std::vector<uint8_t> bytes;
+    int settings_index;     // newest settings message before it (-1: none yet)
+  };
+  std::vector<DeviceEvent> device_events;
   int64_t undecodable = 0;
   for (const lcm::LogEvent* ev = file.readNextEvent(); ev != nullptr; ev = file.readNextEvent()) {
     if (ev->channel == c_snap) {
@@ -59,24 +71,65 @@ int main(int argc, char** argv) {
       haptree::CouplingSnapshot s;
       haptree::bus::from_lcmt(m, s);
       snaps[s.version] = std::move(s);   // a restarted server reuses versions: the newest wins
-    } else if (ev->channel == c_state) {
-      haptree::lcmt_device_state m;
+    } else if (ev->channel == c_settings) {
+      haptree::lcmt_coupler_settings m;
       if (haptree::bus::decode_checked(ev->data, ev->datalen, m) == haptree::bus::DecodeResult::kOk)
+        settings.push_back(m);
+      else
+        ++undecodable;
+    } else if (ev->channel.rfind("HAPTREE_DEVICE_STATE_", 0) == 0 || ev->channel.rfind("HAPTREE_FEEDBACK_", 0) == 0) {
+      const auto* b = static_cast<const uint8_t*>(ev->data);
+      device_events.push_back({ev->channel, std::vector<uint8_t>(b, b + ev->datalen), static_cast<int>(settings.size()) - 1});
+    }
+  }
+  if (!settings.empty()) {
+    const auto& first = settings.front();
+    if (!device_given) o.device = first.device_id;
+    std::printf("replay_coupling: coupler settings from the log (%zu messages): k_s %.17g, b_s %.17g, position scale "
+                "%.17g, force scale %.17g, offset %.17g %.17g %.17g, clamp %.17g N, device %d\n",
+                settings.size(), first.stiffness, first.damping, first.position_scale, first.force_scale,
+                first.offset[0], first.offset[1], first.offset[2], first.max_force_n, o.device);
+  } else {
+    std::printf("replay_coupling: no %s messages in the log: using the options given\n", c_settings.c_str());
+  }
+  const std::string c_state = ch::device_state(o.device, suffix), c_fb = ch::feedback(o.device, suffix);
+  for (const auto& [channel, bytes, settings_index] : device_events) {
+    if (channel == c_state) {
+      haptree::lcmt_device_state m;
+      if (haptree::bus::decode_checked(bytes.data(), bytes.size(), m) == haptree::bus::DecodeResult::kOk)
         states[m.seq] = m;
       else
         ++undecodable;
-    } else if (ev->channel == c_fb) {
+    } else if (channel == c_fb) {
       haptree::lcmt_feedback m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) == haptree::bus::DecodeResult::kOk)
-        feedback.push_back(m);
+      if (haptree::bus::decode_checked(bytes.data(), bytes.size(), m) == haptree::bus::DecodeResult::kOk)
+        feedback.emplace_back(m, settings_index);
       else
         ++undecodable;
     }
   }
+  // Options for the FEEDBACK messages logged while settings[i] was the newest (a logger that started late:
+  // the first settings message also stands for the FEEDBACK before it).
+  const haptree::Vec3 offset_opt(offset[0], offset[1], offset[2]);
+  auto options_for = [&](int i) {
+    haptree::CouplerOptions r = o;
+    r.offset = offset_opt;
+    if (settings.empty()) return r;
+    haptree::from_settings(settings[static_cast<size_t>(std::max(0, i))], r);
+    r.user = o.user;
+    r.device = o.device;
+    if (overrides[0]->count()) r.stiffness = o.stiffness;
+    if (overrides[1]->count()) r.damping = o.damping;
+    if (overrides[2]->count()) r.position_scale = o.position_scale;
+    if (overrides[3]->count()) r.force_scale = o.force_scale;
+    if (overrides[4]->count()) r.offset = offset_opt;
+    if (overrides[5]->count()) r.max_force_n = o.max_force_n;
+    return r;
+  };
   haptree::CouplingWorkspace ws(o.max_nodes, o.max_slots);
   int64_t compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0;
   double max_dev = 0;
-  for (const auto& f : feedback) {
+  for (const auto& [f, settings_index] : feedback) {
     if (f.snapshot_version < 0) {
       ++no_snapshot;
       continue;
@@ -85,6 +138,7 @@ int main(int argc, char** argv) {
       ++skipped_watchdog;
       continue;
     }
+    const haptree::CouplerOptions so = options_for(settings_index);
     auto s = snaps.find(f.snapshot_version);
     auto p = states.find(f.echo_device_seq);
     if (s == snaps.end() || p == states.end()) {
@@ -98,9 +152,9 @@ int main(int argc, char** argv) {
     if (!ws.fits(s->second)) ws.reserve_for(s->second);
     haptree::Vec6 f_u, f_feed;
     haptree::Vec3 force_n;
-    if (haptree::coupler_feedback(o, s->second, in, ws, f_u, f_feed, force_n) != haptree::CouplingStatus::kOk)
+    if (haptree::coupler_feedback(so, s->second, in, ws, f_u, f_feed, force_n) != haptree::CouplingStatus::kOk)
       force_n.setZero();
-    force_n = haptree::clamp_norm(haptree::finite_or_zero(force_n), o.max_force_n);
+    force_n = haptree::clamp_norm(haptree::finite_or_zero(force_n), so.max_force_n);
     const haptree::Vec3 logged(f.force_n[0], f.force_n[1], f.force_n[2]);
     max_dev = std::max(max_dev, (force_n - logged).cwiseAbs().maxCoeff());
     ++compared;

@@ -14,6 +14,7 @@ std::string user_force(int user_id, const std::string& suffix = "");      // HAP
 std::string coeffs(int user_id, const std::string& suffix = "");          // HAPTREE_COEFFS_<id>
 std::string scene_state(const std::string& suffix = "");                  // HAPTREE_SCENE_STATE
 std::string stats(const std::string& process, const std::string& suffix = "");  // HAPTREE_STATS_<PROCESS>
+std::string coupler_settings(int user_id, const std::string& suffix = "");   // HAPTREE_COUPLER_SETTINGS_<id>
 
 // Throws std::invalid_argument when `name` is empty, longer than 63 characters, or has characters
 // outside [A-Za-z0-9_]. Returns name.

@@ -2,6 +2,7 @@
 
 #include <cstdio>
 #include <sstream>
+#include <vector>
 
 #include <Eigen/Eigenvalues>
 
@@ -34,7 +35,8 @@ std::string esc(const std::string& s) {
   return o;
 }
 
-void write_body(const Model& m, int k, int depth, std::ostringstream& os) {
+// Opening tag, joint and inertial of body k (its children and closing tag follow).
+void open_body(const Model& m, int k, int depth, std::ostringstream& os) {
   const std::string ind(2 * depth, ' ');
   os << ind << "<body name=\"" << esc(m.body_name[k]) << "\" pos=\"" << vec(m.joint_offset[k])
      << "\" quat=\"" << quat(m.joint_rotation[k]) << "\">\n";
@@ -64,8 +66,28 @@ void write_body(const Model& m, int k, int depth, std::ostringstream& os) {
   if (V.determinant() < 0) V.col(2) = -V.col(2);
   os << ind << "  <inertial pos=\"" << vec(m.com[k]) << "\" quat=\"" << quat(V)
      << "\" diaginertia=\"" << vec(es.eigenvalues()) << "\" mass=\"" << num(m.mass[k]) << "\"/>\n";
-  for (int c : m.children[k]) write_body(m, c, depth + 1, os);
-  os << ind << "</body>\n";
+}
+
+// Depth-first with an explicit stack (no recursion as deep as the model). An entry with close set writes
+// the closing tag of its body once its subtree is done.
+void write_body(const Model& m, int root, int depth, std::ostringstream& os) {
+  struct Item {
+    int k, depth;
+    bool close;
+  };
+  std::vector<Item> stack{{root, depth, false}};
+  while (!stack.empty()) {
+    const Item it = stack.back();
+    stack.pop_back();
+    if (it.close) {
+      os << std::string(2 * it.depth, ' ') << "</body>\n";
+      continue;
+    }
+    open_body(m, it.k, it.depth, os);
+    stack.push_back({it.k, it.depth, true});
+    const auto& ch = m.children[it.k];
+    for (auto c = ch.rbegin(); c != ch.rend(); ++c) stack.push_back({*c, it.depth + 1, false});
+  }
 }
 
 }  // namespace

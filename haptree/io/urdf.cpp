@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <sstream>
 #include <vector>
 
@@ -84,11 +85,17 @@ class Converter {
       if (opt_.floating_base)
         fail("link", "world", "floating_base is set but the root link is \"world\": declare a "
                               "floating joint from world instead");
-      visit_children(*root, -1, Mat3::Identity(), Vec3::Zero());
+      // The ground itself: its children hang from body -1.
+      std::vector<Pending> stack;
+      push_children(*root, -1, Mat3::Identity(), Vec3::Zero(), stack);
+      while (!stack.empty()) {
+        Pending w = std::move(stack.back());
+        stack.pop_back();
+        attach(std::move(w));
+      }
     } else {
       const JointType t = opt_.floating_base ? JointType::kFree : JointType::kFixed;
-      attach(*root, opt_.root_joint_name, "root", t, -1, Mat3::Identity(), Vec3::Zero(),
-             Vec3::UnitZ());
+      attach(Pending{root.get(), opt_.root_joint_name, "root", t, -1, Mat3::Identity(), Vec3::Zero(), Vec3::UnitZ()});
     }
     if (recs_.empty()) fail("robot", urdf.getName(), "no body with mass is attached to the ground");
     ModelBuilder b;
@@ -142,38 +149,60 @@ class Converter {
     return mp;
   }
 
-  // Attaches `link` to body `parent` (-1 = ground) with a joint whose frame in the parent body is
-  // (R, p). `frame_*` describe the link frame in its body.
-  void attach(const urdf::Link& link, const std::string& joint_name, const std::string& element,
-              JointType type, int parent, const Mat3& R, const Vec3& p, const Vec3& axis) {
-    MassProps mp = link_mass(link);
-    const bool massless = !(mp.mass > 0);
-    if (type == JointType::kFixed && (massless || opt_.lump_fixed)) {
-      // Lump: the link is a frame of the parent body.
-      if (parent >= 0 && !massless) {
-        MassProps moved;
-        moved.mass = mp.mass;
-        moved.com = p + R * mp.com;
-        moved.inertia = R * mp.inertia * R.transpose();
-        combine(recs_[parent].mp, moved);
+  // One link to attach: the link, its joint (type, frame (R, p) in the parent body, axis) and the
+  // parent body (-1 = ground).
+  struct Pending {
+    const urdf::Link* link;
+    std::string joint_name, element;
+    JointType type;
+    int parent;
+    Mat3 R;
+    Vec3 p, axis;
+  };
+
+  // Depth-first over the link tree with an explicit stack (a 20 000-link chain must not overflow the
+  // call stack); children are pushed in reverse so bodies come out in the same pre-order as a recursion.
+  void attach(Pending first) {
+    std::vector<Pending> stack;
+    stack.push_back(std::move(first));
+    while (!stack.empty()) {
+      Pending w = std::move(stack.back());
+      stack.pop_back();
+      const urdf::Link& link = *w.link;
+      MassProps mp = link_mass(link);
+      const bool massless = !(mp.mass > 0);
+      int body = static_cast<int>(recs_.size());
+      Mat3 R = Mat3::Identity();
+      Vec3 p = Vec3::Zero();
+      if (w.type == JointType::kFixed && (massless || opt_.lump_fixed)) {
+        // Lump: the link is a frame of the parent body.
+        if (w.parent >= 0 && !massless) {
+          MassProps moved;
+          moved.mass = mp.mass;
+          moved.com = w.p + w.R * mp.com;
+          moved.inertia = w.R * mp.inertia * w.R.transpose();
+          combine(recs_[w.parent].mp, moved);
+        }
+        body = w.parent;
+        R = w.R;
+        p = w.p;
+      } else {
+        if (massless)
+          fail("link", link.name,
+               std::string("has no mass (no <inertial> or mass 0) but is attached by the moving ") + w.element +
+                   " '" + w.joint_name +
+                   "'; haptree needs positive mass on every moving body (give it an <inertial>, or "
+                   "attach it by a fixed joint to be lumped)");
+        recs_.push_back(BodyRec{link.name, w.joint_name, w.parent, w.type, w.p, w.R, w.axis, mp});
       }
-      visit_children(link, parent, R, p);
-      return;
+      push_children(link, body, R, p, stack);
     }
-    if (massless)
-      fail("link", link.name,
-           std::string("has no mass (no <inertial> or mass 0) but is attached by the moving ") +
-               element + " '" + joint_name +
-               "'; haptree needs positive mass on every moving body (give it an <inertial>, or "
-               "attach it by a fixed joint to be lumped)");
-    BodyRec rec{link.name, joint_name, parent, type, p, R, axis, mp};
-    recs_.push_back(rec);
-    visit_children(link, static_cast<int>(recs_.size()) - 1, Mat3::Identity(), Vec3::Zero());
   }
 
-  // Children of `link`, whose frame is (R, p) in body `body`.
-  void visit_children(const urdf::Link& link, int body, const Mat3& R, const Vec3& p) {
-    for (const auto& j : link.child_joints) {
+  // Children of `link`, whose frame is (R, p) in body `body`, onto the stack (first child on top).
+  void push_children(const urdf::Link& link, int body, const Mat3& R, const Vec3& p, std::vector<Pending>& stack) {
+    for (auto it = link.child_joints.rbegin(); it != link.child_joints.rend(); ++it) {
+      const auto& j = *it;
       const auto child = link_of(j->child_link_name);
       JointType t = JointType::kFixed;
       switch (j->type) {
@@ -194,7 +223,7 @@ class Converter {
           (!axis.allFinite() || axis.norm() < 1e-12))
         fail("joint", j->name, "<axis> is zero or not finite");
       if (t != JointType::kRevolute && t != JointType::kPrismatic) axis = Vec3::UnitZ();
-      attach(*child, j->name, "joint", t, body, Rj, pj, axis);
+      stack.push_back(Pending{child, j->name, "joint", t, body, Rj, pj, axis});
     }
   }
 
@@ -239,6 +268,21 @@ std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::strin
   }
   if (!urdf)
     throw UrdfError(source + ": URDF parse error: " + one_line(err.empty() ? "unknown" : err));
+  // A link with two parents closes a loop; haptree simulates trees only (and urdfdom would hand the
+  // link to both parents, i.e. a duplicated body). Name the link and both parents.
+  {
+    std::map<std::string, const urdf::Joint*> parent_joint;
+    for (const auto& [name, j] : urdf->joints_) {
+      if (!j) continue;
+      auto [it, fresh] = parent_joint.emplace(j->child_link_name, j.get());
+      if (!fresh)
+        throw UrdfError(source + ": link '" + j->child_link_name + "' has two parents: '" +
+                        it->second->parent_link_name + "' (joint '" + it->second->name + "') and '" +
+                        j->parent_link_name + "' (joint '" + j->name +
+                        "'); the joints form a closed loop, and haptree simulates trees only (remove one of "
+                        "the joints, or model the loop as a constraint outside the URDF)");
+    }
+  }
   Converter c(source, options);
   c.model_links_ = &urdf->links_;
   return c.run(*urdf);

@@ -101,7 +101,58 @@ void write_atoms(std::FILE* f, const Structure& s, const std::vector<Vec3>& x) {
   }
 }
 
+// PDB's %8.3f columns hold -999.999 .. 9999.999 Å.
+bool fits_pdb(double angstrom) { return angstrom > -999.9995 && angstrom < 9999.9995; }
+
+// Quoted if needed (atom names such as H5' or names with spaces).
+std::string cif_value(const std::string& v) {
+  if (v.empty()) return ".";
+  if (v.find_first_of(" '\"#") == std::string::npos && v[0] != '_' && v[0] != '$') return v;
+  return v.find('"') == std::string::npos ? "\"" + v + "\"" : "'" + v + "'";
+}
+
 }  // namespace
+
+int first_atom_outside_pdb_columns(const std::vector<Vec3>& x_nm) {
+  for (size_t a = 0; a < x_nm.size(); ++a) {
+    const Vec3 p = 10.0 * x_nm[a];
+    if (!(fits_pdb(p.x()) && fits_pdb(p.y()) && fits_pdb(p.z()))) return static_cast<int>(a);
+  }
+  return -1;
+}
+
+static void require_pdb_columns(const std::string& path, const Structure& s, const std::vector<Vec3>& x) {
+  const int a = first_atom_outside_pdb_columns(x);
+  if (a < 0) return;
+  char xyz[96];
+  std::snprintf(xyz, sizeof xyz, "(%.3f, %.3f, %.3f) Å", 10 * x[a].x(), 10 * x[a].y(), 10 * x[a].z());
+  throw std::runtime_error(path + ": atom " + std::to_string(a + 1) + " (" + s.atoms[a].name + " " + s.atoms[a].resname +
+                           " " + std::to_string(s.atoms[a].resid) + ") at " + xyz +
+                           " does not fit PDB's fixed coordinate columns (-999.999 .. 9999.999 Å); write mmCIF (.cif) "
+                           "instead");
+}
+
+void write_mmcif(const std::string& path, const Structure& s, const std::vector<Vec3>& x) {
+  if (x.size() != s.atoms.size()) throw std::invalid_argument(path + ": coordinate count differs from the atoms");
+  std::FILE* f = std::fopen(path.c_str(), "w");
+  if (!f) throw std::runtime_error(path + ": cannot open for writing");
+  std::fprintf(f, "data_haptree\nloop_\n");
+  for (const char* k : {"group_PDB", "id", "type_symbol", "label_atom_id", "label_alt_id", "label_comp_id",
+                        "label_asym_id", "label_entity_id", "label_seq_id", "pdbx_PDB_ins_code", "Cartn_x", "Cartn_y",
+                        "Cartn_z", "occupancy", "B_iso_or_equiv", "auth_seq_id", "auth_asym_id", "pdbx_PDB_model_num"})
+    std::fprintf(f, "_atom_site.%s\n", k);
+  for (size_t a = 0; a < s.atoms.size(); ++a) {
+    const AtomRecord& r = s.atoms[a];
+    const Vec3 p = x[a] * 10.0;
+    const std::string chain = cif_value(r.chain.empty() ? "A" : r.chain);
+    const std::string icode = r.icode && r.icode != ' ' ? std::string(1, r.icode) : "?";
+    std::fprintf(f, "%s %zu %s %s . %s %s 1 %d %s %.4f %.4f %.4f %.2f 0.00 %d %s 1\n", r.hetero ? "HETATM" : "ATOM",
+                 a + 1, cif_value(r.element).c_str(), cif_value(r.name).c_str(), cif_value(r.resname).c_str(),
+                 chain.c_str(), r.resid, icode.c_str(), p.x(), p.y(), p.z(), r.occupancy, r.resid, chain.c_str());
+  }
+  const bool ok = std::fprintf(f, "#\n") > 0;
+  if (std::fclose(f) != 0 || !ok) throw std::runtime_error(path + ": write failed");
+}
 
 PdbTrajectoryWriter::PdbTrajectoryWriter(const std::string& path, const Structure& s)
     : s_(s), out_(path), path_(path) {
@@ -111,6 +162,7 @@ PdbTrajectoryWriter::PdbTrajectoryWriter(const std::string& path, const Structur
 
 void PdbTrajectoryWriter::write_frame(const std::vector<Vec3>& x) {
   if (x.size() != s_.atoms.size()) throw std::invalid_argument(path_ + ": frame size differs");
+  require_pdb_columns(path_, s_, x);
   ++frames_;
   char line[32];
   std::snprintf(line, sizeof line, "MODEL     %4d\n", frames_ % 10000);
@@ -141,6 +193,7 @@ PdbTrajectoryWriter::~PdbTrajectoryWriter() {
 }
 
 void write_pdb(const std::string& path, const Structure& s, const std::vector<Vec3>& x) {
+  require_pdb_columns(path, s, x);
   std::FILE* f = std::fopen(path.c_str(), "w");
   if (!f) throw std::runtime_error(path + ": cannot open for writing");
   write_atoms(f, s, x);

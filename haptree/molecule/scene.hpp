@@ -86,7 +86,14 @@ class PdbTrajectoryWriter {
   int frames_ = 0;
 };
 
-// Writes one structure (positions in nm) as PDB with CONECT for non-template bonds if given.
+// Writes one structure (positions in nm) as PDB with CONECT for non-template bonds if given. Throws
+// (naming the atom) if a coordinate does not fit PDB's fixed columns (-999.999 .. 9999.999 Å): use
+// write_mmcif for those. PdbTrajectoryWriter::write_frame checks the same.
 void write_pdb(const std::string& path, const Structure& s, const std::vector<Vec3>& x_nm);
+// Index of the first atom whose coordinates do not fit PDB's columns, -1 if all fit.
+int first_atom_outside_pdb_columns(const std::vector<Vec3>& x_nm);
+// Writes one structure as mmCIF (_atom_site loop; any size). CONECT bonds are not written: only
+// template residues (e.g. proteins) come back the same from it.
+void write_mmcif(const std::string& path, const Structure& s, const std::vector<Vec3>& x_nm);
 
 }  // namespace haptree::mol

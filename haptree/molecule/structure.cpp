@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <map>
 #include <set>
@@ -45,6 +47,31 @@ const std::set<std::string>& protein_names() {
   return names;
 }
 
+// A fixed-column field (0-based start, width) that must hold one number, nothing else.
+bool number_field(const std::string& line, size_t start, size_t width, bool required) {
+  if (line.size() <= start) return !required;
+  const std::string f = trim(line.substr(start, width));
+  if (f.empty()) return !required;
+  char* end = nullptr;
+  const double v = std::strtod(f.c_str(), &end);
+  return end && *end == '\0' && std::isfinite(v);
+}
+
+// x, y, z in columns 31-38, 39-46, 47-54 (and occupancy 55-60, B 61-66 when present) must each hold one
+// number. A coordinate wider than 8 characters (>= 10000 Å or <= -1000 Å) shifts the columns: gemmi would
+// read the pieces as other numbers, so the line is an error.
+void check_coordinate_columns(const std::string& path, int ln, const std::string& line) {
+  const bool ok = number_field(line, 30, 8, true) && number_field(line, 38, 8, true) &&
+                  number_field(line, 46, 8, true) && number_field(line, 54, 6, false) &&
+                  number_field(line, 60, 6, false);
+  if (ok) return;
+  auto col = [&line](size_t a, size_t w) { return line.size() > a ? line.substr(a, w) : std::string(); };
+  throw StructureError(path + ":" + std::to_string(ln) + ": coordinate columns do not hold numbers (x '" +
+                       col(30, 8) + "', y '" + col(38, 8) + "', z '" + col(46, 8) + "', occupancy '" + col(54, 6) +
+                       "'): a coordinate wider than PDB's 8 columns (outside -999.999 .. 9999.999 Å) or a "
+                       "misaligned line. Line: '" + line + "'. Write such structures as mmCIF (.cif)");
+}
+
 struct LineInfo {
   int line;
   std::string record;
@@ -68,6 +95,7 @@ void scan_pdb_text(const std::string& path, std::unordered_map<int, int>& serial
       seen_model = true;
     }
     if ((rec == "ATOM  " || rec == "HETATM") && in_first_model && line.size() >= 11) {
+      check_coordinate_columns(path, ln, line);
       const std::string s = trim(line.substr(6, 5));
       char* end = nullptr;
       const long v = std::strtol(s.c_str(), &end, 10);
@@ -123,6 +151,28 @@ std::string Structure::atom_label(int i) const {
   std::string s = a.name + " " + a.resname + " " + a.chain + " " + std::to_string(a.resid);
   if (a.line > 0) s += " (line " + std::to_string(a.line) + ")";
   return s;
+}
+
+void check_no_coincident_atoms(const Structure& s, double min_distance_nm) {
+  // Sort and sweep along x: only pairs closer than min_distance_nm in x are compared.
+  const int n = static_cast<int>(s.atoms.size());
+  std::vector<int> order(static_cast<size_t>(n));
+  for (int i = 0; i < n; ++i) order[static_cast<size_t>(i)] = i;
+  std::sort(order.begin(), order.end(), [&s](int a, int b) { return s.atoms[a].pos.x() < s.atoms[b].pos.x(); });
+  const double d2 = min_distance_nm * min_distance_nm;
+  for (int i = 0; i < n; ++i) {
+    const Vec3& p = s.atoms[order[i]].pos;
+    for (int j = i + 1; j < n && s.atoms[order[j]].pos.x() - p.x() < min_distance_nm; ++j) {
+      const double r2 = (s.atoms[order[j]].pos - p).squaredNorm();
+      if (r2 >= d2) continue;
+      const int a = std::min(order[i], order[j]), b = std::max(order[i], order[j]);
+      char dist[96];
+      std::snprintf(dist, sizeof dist, "%.4f Å apart (closer than %.3g Å)", 10.0 * std::sqrt(r2), 10.0 * min_distance_nm);
+      throw StructureError(s.path + ": atoms " + s.atom_label(a) + " and " + s.atom_label(b) + " are " + dist +
+                           ": coincident atoms make the force field unbounded; remove the duplicate or fix "
+                           "its coordinates");
+    }
+  }
 }
 
 bool is_protein_residue_name(const std::string& n) { return protein_names().count(n) > 0; }
@@ -261,6 +311,7 @@ Structure read_structure(const std::string& path, const ReadOptions& opt) {
     }
   }
   out.conect.assign(bonds.begin(), bonds.end());
+  check_no_coincident_atoms(out);
 
   if (out.dropped_waters)
     out.messages.push_back("dropped " + std::to_string(out.dropped_waters) + " water residues");

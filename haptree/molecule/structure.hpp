@@ -65,6 +65,10 @@ struct Structure {
 // the highest occupancy is kept (the first one on ties); the others are counted and dropped.
 Structure read_structure(const std::string& path, const ReadOptions& options = {});
 
+// Throws StructureError naming both atoms (with their lines) if two atoms are closer than
+// min_distance_nm (default 0.1 Å; the shortest real bond, H-H, is 0.74 Å). read_structure calls it.
+void check_no_coincident_atoms(const Structure& s, double min_distance_nm = 0.01);
+
 // Residue names of the standard amino acids and caps that the protein templates know.
 bool is_protein_residue_name(const std::string& resname);
 bool is_water_residue_name(const std::string& resname);

@@ -3,10 +3,12 @@
 #include "haptree/bus/shm_channel.hpp"
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <random>
 #include <thread>
 
@@ -69,11 +71,12 @@ TEST(ShmChannel, LatestValueWithinOneProcess) {
   ASSERT_EQ(r.read(out.data(), out.size(), &n), 4u);
   EXPECT_EQ(n, kShmMaxMessageBytes);
 
-  // A second writer (e.g. a restarted process) continues the index; a late reader sees the newest.
-  ShmWriter w2(ch.name);
-  ASSERT_TRUE(w2.write_msg(state_with(42)));
+  // A late reader gets nothing of what was written before it opened, then the newest message.
   ShmReader late(ch.name);
   lcmt_device_state m{};
+  EXPECT_EQ(late.read_msg(m), ShmRead::kNothingNew);
+  EXPECT_EQ(late.stale(), 1);
+  ASSERT_TRUE(w.write_msg(state_with(42)));
   ASSERT_EQ(late.read_msg(m), ShmRead::kNew);
   EXPECT_EQ(late.last_index(), 5u);
   EXPECT_EQ(m.seq, 42);
@@ -133,26 +136,27 @@ TEST(ShmChannel, BetweenTwoProcesses) {
   const std::string reply = ch.name + "_R";
   ShmChannel::remove(reply);
   constexpr int64_t kWrites = 100000;
+  ShmReader r(ch.name);   // before the writer starts: a reader only takes messages of its own session
   const pid_t pid = ::fork();
   ASSERT_GE(pid, 0);
   if (pid == 0) {  // child: stream states, then answer one ping on the reply channel
     int code = 0;
     try {
+      ShmReader ping(reply);
       ShmWriter w(ch.name);
       for (int64_t k = 1; k <= kWrites; ++k)
         if (!w.write_msg(state_with(k))) code = 2;
-      ShmReader ping(reply);
       lcmt_feedback f{};
       const auto deadline = std::chrono::steady_clock::now() + 10s;
       while (ping.read_msg(f) != ShmRead::kNew && std::chrono::steady_clock::now() < deadline) {}
       if (f.echo_device_seq != kWrites) code = 3;
       if (!w.write_msg(state_with(kWrites + 1))) code = 4;
+      std::this_thread::sleep_for(300ms);   // a reader drops the messages of a writer that is gone
     } catch (...) {
       code = 5;
     }
     ::_exit(code);
   }
-  ShmReader r(ch.name);
   ShmWriter back(reply);
   lcmt_device_state m{};
   int64_t last = 0, bad = 0, backwards = 0;
@@ -180,6 +184,133 @@ TEST(ShmChannel, BetweenTwoProcesses) {
   EXPECT_EQ(backwards, 0);
   EXPECT_EQ(r.rejected(), 0);
   ShmChannel::remove(reply);
+}
+
+bool segment_exists(const std::string& channel) {
+  return ::access(("/dev/shm" + shm_segment_name(channel)).c_str(), F_OK) == 0;
+}
+
+// Forks a writer that publishes one FEEDBACK of 2.5 N on `channel` and then dies by SIGKILL (no cleanup,
+// as after `kill -9`). Returns once the child is reaped.
+void write_feedback_and_die(const std::string& channel) {
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    ShmWriter w(channel);
+    lcmt_feedback f{};
+    stamp(f);
+    f.seq = 77;
+    f.force_n[0] = 2.5;
+    w.write_msg(f);
+    ::raise(SIGKILL);
+    ::_exit(3);
+  }
+  int st = 0;
+  ASSERT_EQ(::waitpid(pid, &st, 0), pid);
+  ASSERT_TRUE(WIFSIGNALED(st));
+}
+
+// Issue 11, defect 1: a new reader (a new device_bridge) must not hand out the last FEEDBACK of a writer
+// that was killed, and a reader that was already open must drop it as soon as the writer is gone.
+TEST(ShmChannel, NewReaderNeverSeesADeadSessionsFeedback) {
+  TempChannel ch("dead");
+  write_feedback_and_die(ch.name);
+  ShmReader r(ch.name);
+  lcmt_feedback m{};
+  const auto until = std::chrono::steady_clock::now() + 100ms;
+  int64_t handed_out = 0;
+  while (std::chrono::steady_clock::now() < until) {
+    if (r.read_msg(m) == ShmRead::kNew) ++handed_out;
+    std::this_thread::sleep_for(1ms);
+  }
+  EXPECT_EQ(handed_out, 0) << "read the dead writer's force " << m.force_n[0] << " N";
+}
+
+TEST(ShmChannel, OpenReaderDropsMessagesOfAWriterThatDied) {
+  TempChannel ch("died");
+  ShmReader r(ch.name);   // opened first: the message is of its own session, but its writer is dead
+  write_feedback_and_die(ch.name);
+  lcmt_feedback m{};
+  EXPECT_EQ(r.read_msg(m), ShmRead::kNothingNew);
+  EXPECT_EQ(r.writer_pid(), 0);
+}
+
+TEST(ShmChannel, MessagesOlderThanTheMaxAgeAreDropped) {
+  TempChannel ch("age");
+  ShmWriter w(ch.name);
+  ShmReader r(ch.name, 0.010);   // the device_bridge's feedback timeout
+  lcmt_feedback f{};
+  stamp(f);
+  ASSERT_TRUE(w.write_msg(f));
+  std::this_thread::sleep_for(30ms);   // 3x the max age: no scheduling delay makes it fresh
+  lcmt_feedback m{};
+  EXPECT_EQ(r.read_msg(m), ShmRead::kNothingNew);
+  EXPECT_EQ(r.stale(), 1);
+  ASSERT_TRUE(w.write_msg(f));
+  EXPECT_EQ(r.read_msg(m), ShmRead::kNew);   // written just now
+  EXPECT_EQ(r.writer_pid(), ::getpid());
+}
+
+// Issue 11, defect 8: segments do not outlive their writers.
+TEST(ShmChannel, WriterUnlinksItsSegmentAndOneLiveWriterPerChannel) {
+  TempChannel ch("unlink");
+  {
+    ShmWriter w(ch.name);
+    EXPECT_TRUE(segment_exists(ch.name));
+    try {
+      ShmWriter second(ch.name);
+      ADD_FAILURE() << "a second live writer was accepted";
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find("already has a live writer (pid " + std::to_string(::getpid())),
+                std::string::npos)
+          << e.what();
+    }
+  }
+  EXPECT_FALSE(segment_exists(ch.name));
+}
+
+TEST(ShmChannel, DeadWritersSegmentIsReclaimed) {
+  TempChannel a("reclaimA"), b("reclaimB"), c("reclaimC");
+  write_feedback_and_die(a.name);
+  ASSERT_TRUE(segment_exists(a.name));
+  {
+    ShmWriter w(a.name);   // a restarted writer takes the channel over
+    EXPECT_TRUE(w.reclaimed());
+  }
+  // Any new writer reclaims every dead writer's segment of this user on the way ...
+  write_feedback_and_die(b.name);
+  ASSERT_TRUE(segment_exists(b.name));
+  { ShmWriter w(c.name); }
+  EXPECT_FALSE(segment_exists(b.name));
+  // ... and so does reclaim_stale_shm_segments() (haptree_run at start).
+  write_feedback_and_die(b.name);
+  ASSERT_TRUE(segment_exists(b.name));
+  const auto removed = reclaim_stale_shm_segments();
+  bool found = false;
+  for (const auto& n : removed) found |= n.find(shm_segment_name(b.name)) == 0;
+  EXPECT_TRUE(found);
+  EXPECT_FALSE(segment_exists(b.name));
+}
+
+TEST(ShmChannel, ReaderFollowsARestartedWriter) {
+  TempChannel ch("follow");
+  ShmReader r(ch.name);
+  lcmt_device_state m{};
+  {
+    ShmWriter w(ch.name);
+    ASSERT_TRUE(w.write_msg(state_with(1)));
+    ASSERT_EQ(r.read_msg(m), ShmRead::kNew);
+  }
+  ShmWriter w2(ch.name);   // a new segment under the same name
+  const auto until = std::chrono::steady_clock::now() + 2s;
+  int64_t got = 0;
+  while (got != 2 && std::chrono::steady_clock::now() < until) {
+    ASSERT_TRUE(w2.write_msg(state_with(2)));
+    if (r.read_msg(m) == ShmRead::kNew) got = m.seq;
+    std::this_thread::sleep_for(1ms);
+  }
+  EXPECT_EQ(got, 2);
+  EXPECT_EQ(r.reopened(), 2);
 }
 
 TEST(ShmMirror, RepublishesNewestOntoTheBus) {

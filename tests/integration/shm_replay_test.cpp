@@ -1,0 +1,106 @@
+// Issue 11, defect 10: a session whose device link runs over shared memory, recorded with the default
+// mirror rate, replays with replay_coupling's defaults: the coupler's settings come from the log
+// (lcmt_coupler_settings) and every mirrored FEEDBACK comes with the device state it answers, so
+// > 0 compared, 0 missing, deviation <= 1e-12 N (the replay is the same computation on the same bits).
+#include <gtest/gtest.h>
+#include <lcm/lcm-cpp.hpp>
+#include <signal.h>
+#include <sys/wait.h>
+
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "haptree/bus/bus.hpp"
+#include "tests/integration/spawn.hpp"
+#include "tools/tcpq_hub.hpp"
+
+namespace haptree {
+namespace {
+
+using namespace std::chrono_literals;
+
+int stop_and_reap(pid_t p) {
+  ::kill(p, SIGTERM);
+  int st = 0;
+  ::waitpid(p, &st, 0);
+  return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
+}
+
+long long number_before(const std::string& out, const std::string& word) {
+  const auto k = out.find(word);
+  if (k == std::string::npos) return -1;
+  auto b = out.rfind(' ', k - 2);
+  return std::atoll(out.c_str() + (b == std::string::npos ? 0 : b + 1));
+}
+
+TEST(ShmReplay, RecordedShmSessionReplaysWithDefaults) {
+  tools::TcpqHub hub(0);
+  const std::string suffix = "_P" + std::to_string(::getpid());
+  const std::string dir = ::testing::TempDir();
+  const std::string path = dir + "haptree_shm_session.lcmlog";
+  std::remove(path.c_str());
+  int body = 0;
+  const std::vector<std::string> offset = testing::grab_offset_args(&body);
+  const std::vector<std::string> common = {"--lcm-url", hub.url(), "--channel-suffix", suffix};
+  std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--scene", "protein_like", "--n", "32", "--rate-hz", "1000"};
+  std::vector<std::string> cpl = {HAPTREE_COUPLER, "--grab-body", std::to_string(body), "--rate-hz", "5000",
+                                  "--sleep", "--stale-after-s", "0.05", "--shm"};
+  cpl.insert(cpl.end(), offset.begin(), offset.end());
+  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--shm", "--option", "approach_s=0.2", "--option", "hold_s=60"};
+  for (auto* v : {&sim, &cpl, &dev}) v->insert(v->end(), common.begin(), common.end());
+  {
+    // The recorder: every channel of the session's bus into an LCM log, as lcm-logger would.
+    bus::Bus bus(hub.url());
+    auto log = std::make_unique<lcm::LogFile>(path, "w");
+    ASSERT_TRUE(log->good());
+    std::mutex mu;
+    int64_t n = 0;
+    bus.subscribe_raw(".*", [&](const void* data, uint32_t size, const std::string& ch) {
+      std::lock_guard<std::mutex> lock(mu);
+      lcm::LogEvent ev;
+      ev.eventnum = n++;
+      ev.timestamp = bus::now_utime();
+      ev.channel = ch;
+      ev.datalen = static_cast<int32_t>(size);
+      ev.data = const_cast<void*>(data);
+      if (log) log->writeEvent(&ev);
+    });
+    bus::HandlerThread handler(bus, 5);
+    std::this_thread::sleep_for(200ms);   // the recorder is connected before the session starts
+    const pid_t p_sim = testing::spawn_logged(sim, dir + "shm_replay_sim.log");
+    const pid_t p_cpl = testing::spawn_logged(cpl, dir + "shm_replay_coupler.log");
+    const pid_t p_dev = testing::spawn_logged(dev, dir + "shm_replay_bridge.log");
+    ASSERT_GT(p_sim, 0);
+    ASSERT_GT(p_cpl, 0);
+    ASSERT_GT(p_dev, 0);
+    std::this_thread::sleep_for(3s);   // approach 0.2 s, settle, pull: most of it under a nonzero force
+    EXPECT_EQ(stop_and_reap(p_dev), 0);
+    EXPECT_EQ(stop_and_reap(p_cpl), 0);
+    EXPECT_EQ(stop_and_reap(p_sim), 0);
+    handler.stop();
+    std::lock_guard<std::mutex> lock(mu);
+    log.reset();
+  }
+  hub.stop();
+  const std::string cmd = std::string(HAPTREE_REPLAY_COUPLING) + " " + path + " --channel-suffix " + suffix + " 2>&1";
+  FILE* p = ::popen(cmd.c_str(), "r");
+  ASSERT_NE(p, nullptr);
+  std::string out;
+  char buf[4096];
+  for (size_t k; (k = std::fread(buf, 1, sizeof buf, p)) > 0;) out.append(buf, k);
+  const int st = ::pclose(p);
+  std::printf("%s\n%s", cmd.c_str(), out.c_str());
+  EXPECT_TRUE(WIFEXITED(st) && WEXITSTATUS(st) == 0) << out;
+  EXPECT_GT(number_before(out, "compared"), 100) << out;   // 100 Hz mirror over ~2.5 s of grab
+  EXPECT_EQ(number_before(out, "missing snapshot/pose"), 0) << out;
+  EXPECT_NE(out.find("coupler settings from the log"), std::string::npos) << out;
+}
+
+}  // namespace
+}  // namespace haptree
