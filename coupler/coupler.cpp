@@ -66,7 +66,7 @@ CouplingStatus coupler_feedback(const CouplerOptions& o, const CouplingSnapshot&
 }
 
 void to_settings(const CouplerOptions& o, int64_t instance_id, lcmt_coupler_settings& m) {
-  bus::stamp(m);
+  bus::stamp(m, instance_id);
   m.instance_id = instance_id;
   m.user_id = o.user;
   m.device_id = o.device;

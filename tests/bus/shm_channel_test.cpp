@@ -198,7 +198,7 @@ void write_feedback_and_die(const std::string& channel) {
   if (pid == 0) {
     ShmWriter w(channel);
     lcmt_feedback f{};
-    stamp(f);
+    stamp(f, 7);
     f.seq = 77;
     f.force_n[0] = 2.5;
     w.write_msg(f);
@@ -240,7 +240,7 @@ TEST(ShmChannel, MessagesOlderThanTheMaxAgeAreDropped) {
   ShmWriter w(ch.name);
   ShmReader r(ch.name, 0.010);   // the device_bridge's feedback timeout
   lcmt_feedback f{};
-  stamp(f);
+  stamp(f, 7);
   ASSERT_TRUE(w.write_msg(f));
   std::this_thread::sleep_for(30ms);   // 3x the max age: no scheduling delay makes it fresh
   lcmt_feedback m{};
