@@ -153,6 +153,9 @@ inline CouplingLoopResult run_coupling_loop(const CouplingLoopOptions& o,
   co.damping = o.b_s;
   co.position_scale = o.position_scale;
   co.force_scale = o.force_scale;
+  // No clamp anywhere in this loop (it studies the stability limit): also none on the user force, whose
+  // scene-side limit coupler_feedback derives from max_force_n.
+  co.max_force_n = std::numeric_limits<double>::infinity();
   const Vec3 grab_m(0.0, 0.0, 0.01);
   co.offset = x_s0 - o.position_scale * grab_m;   // the device's start point maps onto x_s0
 
