@@ -12,7 +12,7 @@ int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
   haptree::CouplerOptions o;
   haptree::bus::BusOptions b;
-  haptree::bus::add_bus_options(app, b);
+  haptree::bus::add_bus_options(app, b, /*shm_link=*/true, /*mirror=*/false);   // the device_bridge mirrors
   std::vector<double> offset{0, 0, 0};
   app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>)")->capture_default_str();
   app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>)")->capture_default_str();
