@@ -13,7 +13,7 @@ int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
   haptree::CouplerOptions o;
   haptree::bus::BusOptions b;
-  haptree::bus::add_bus_options(app, b);
+  haptree::bus::add_bus_options(app, b, /*shm_link=*/true, /*mirror=*/false);   // the device_bridge mirrors
   std::vector<double> offset{0, 0, 0};
   app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>)")
       ->check(CLI::Range(0, 1000000))->capture_default_str();

@@ -45,9 +45,9 @@ Data::Data(const Model& model) {
       if (model.children[k].size() > model.children[hub].size()) hub = k;
     throw ModelError("body '" + model.body_name[hub] + "' has " +
                      std::to_string(model.children[hub].size()) + " children: the assembly would "
-                     "need " + std::to_string(phi * 8 >> 20) + " MiB of coefficients; build the "
-                     "model with BuildOptions::max_children (e.g. 4) to split it (exact, "
-                     "ALGORITHMS §4.4)");
+                     "need " + std::to_string(phi * 8 >> 20) + " MiB of coefficients; split it into "
+                     "rigid pieces with --max-children 4 (haptree-fd; BuildOptions::max_children "
+                     "in the API), exact, ALGORITHMS §4.4");
   }
   Phi_buf.assign(phi, 0.0);
   b_buf.assign(vec, 0.0);

@@ -5,14 +5,19 @@
 #include <atomic>
 
 #include "haptree/bus/cli.hpp"
+#include "haptree/molecule/scene.hpp"
 #include "sim_server/sim_server.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree sim_server: adaptive DCA dynamics + coupling snapshots over LCM"};
   haptree::SimServerOptions o;
   haptree::bus::BusOptions b;
-  haptree::bus::add_bus_options(app, b);
-  app.add_option("--scene", o.scene, "chain|binary_tree|random_tree|star|protein_like, or a molecule name / PDB path")
+  haptree::bus::add_bus_options(app, b, /*shm_link=*/false, /*mirror=*/false);   // the server has no device link
+  std::string molecules;
+  for (const auto& m : haptree::mol::molecular_scene_names()) molecules += (molecules.empty() ? "" : ", ") + m;
+  app.add_option("--scene", o.scene,
+                 "procedural: chain|binary_tree|random_tree|star|protein_like (857 DOF, fixed size); molecule: " +
+                     molecules + "; or a PDB/mmCIF path")
       ->capture_default_str();
   app.add_option("--n", o.n, "bodies of a procedural scene")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", o.urdf, "URDF file (overrides --scene)");
@@ -54,6 +59,8 @@ int main(int argc, char** argv) {
                  "2 x the coupler's default max_force_n / force_scale (2 x 3 N / 0.5)")
       ->check(haptree::bus::positive(1e12))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (o.scene == "protein_like" && app.count("--n") > 0 && o.urdf.empty())
+    spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", o.n);
   if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();

@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -345,6 +346,26 @@ void SimServer::publish_scene_state(double step_ms) {
 
 // Every field set (issue 11, defect 6): counters from SimServerCounters, latencies from the last step
 // and the slowest step of the period.
+// Once per stats window: the real-time factor, and one plain-words warning when the requested rate is not
+// kept for two windows in a row (the first window, with the start-up, does not count).
+void SimServer::check_rate(double steps_per_s, double mean_step_ms, double max_step_ms) {
+  last_real_time_factor_ = steps_per_s * opt_.dt;
+  last_rate_fraction_ = opt_.rate_hz > 0 ? steps_per_s / opt_.rate_hz : 0.0;
+  last_max_step_ms_ = max_step_ms;
+  if (opt_.rate_hz <= 0 || warned_rate_) return;
+  slow_windows_ = last_rate_fraction_ < 0.9 ? slow_windows_ + 1 : 0;
+  if (slow_windows_ < 2) return;
+  warned_rate_ = true;
+  const bool molecule = molecule_ != nullptr;
+  spdlog::warn("sim_server: cannot keep the requested --rate-hz {:.0f}: {:.0f} steps/s in the last second ({:.0f} % "
+               "of it); steps took {:.2f} ms on average and up to {:.1f} ms, so simulated time runs at {:.3g} {} "
+               "instead of {:.3g}. The haptic loop is unaffected, but the body responds more slowly. Lower "
+               "--budget-dofs, use a smaller model, or ask for a lower --rate-hz. (Said once.)",
+               opt_.rate_hz, steps_per_s, 100 * last_rate_fraction_, mean_step_ms, max_step_ms,
+               last_real_time_factor_, molecule ? "ps of simulated time per second" : "x real time",
+               opt_.rate_hz * opt_.dt);
+}
+
 void SimServer::publish_stats(double rate_hz) {
   lcmt_process_stats s{};
   bus::stamp(s, instance_id_);
@@ -364,10 +385,14 @@ void SimServer::publish_stats(double rate_hz) {
   s.nonfinite_events = c_.nonfinite_events.load();
   double gap = 0;
   for (auto& u : users_) gap = std::max(gap, u->max_gap_s), u->max_gap_s = 0;
-  s.n_extra = 4;
-  s.extra_names = {"active_dofs", "snapshot_bytes", "resets", "user_force_gap_max_ms"};
+  // real_time_factor: simulated time per wall-clock second (s/s; ps/s for molecules); rate_fraction: steps/s
+  // over the requested --rate-hz (0 if free-running); max_step_ms: the longest step of the last second.
+  s.n_extra = 7;
+  s.extra_names = {"active_dofs", "snapshot_bytes", "resets", "user_force_gap_max_ms", "real_time_factor",
+                   "rate_fraction", "max_step_ms"};
   s.extra_values = {static_cast<double>(active_dofs_.load()), static_cast<double>(snapshot_bytes_.load()),
-                    static_cast<double>(resets_.load()), 1e3 * gap};
+                    static_cast<double>(resets_.load()), 1e3 * gap, last_real_time_factor_, last_rate_fraction_,
+                    last_max_step_ms_};
   bus_.publish(bus::channel::stats("sim_server", opt_.channel_suffix), s);
   max_step_ms_ = 0;
 }
@@ -388,13 +413,19 @@ int SimServer::run(const std::atomic<bool>& stop) {
     step_ms_.store(ms, std::memory_order_relaxed);
     max_step_ms_ = std::max(max_step_ms_, ms);
     steps_.fetch_add(1, std::memory_order_relaxed);
+    window_step_ms_sum_ += ms;
+    window_step_ms_max_ = std::max(window_step_ms_max_, ms);
     if (opt_.display_rate_hz > 0 && b >= next_display) {
       publish_scene_state(ms);
       next_display = b + std::chrono::duration_cast<Clock::duration>(
                              std::chrono::duration<double>(1.0 / opt_.display_rate_hz));
     }
     if (b >= next_stats) {
-      publish_stats(static_cast<double>(steps_.load() - steps_at_stats));
+      const int64_t window_steps = steps_.load() - steps_at_stats;
+      check_rate(static_cast<double>(window_steps), window_steps ? window_step_ms_sum_ / window_steps : 0.0,
+                 window_step_ms_max_);
+      window_step_ms_sum_ = window_step_ms_max_ = 0;
+      publish_stats(static_cast<double>(window_steps));
       steps_at_stats = steps_.load();
       next_stats += std::chrono::seconds(1);
     }

@@ -96,6 +96,12 @@ class SimServer {
   void publish_snapshots();
   void publish_scene_state(double step_ms);
   void publish_stats(double rate_hz);
+  // Real-time accounting of the last stats window (issue 11, defect 12).
+  void check_rate(double steps_per_s, double mean_step_ms, double max_step_ms);
+  double window_step_ms_sum_ = 0, window_step_ms_max_ = 0;
+  int slow_windows_ = 0;
+  bool warned_rate_ = false;
+  double last_rate_fraction_ = 0, last_real_time_factor_ = 0, last_max_step_ms_ = 0;
 
   void take_user_force(UserSlot& u, double now_s);
   bus::Bus& bus_;

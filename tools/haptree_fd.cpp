@@ -2,6 +2,7 @@
 // Lets people and external checks compare haptree's DCA with other engines.
 #include <CLI/CLI.hpp>
 
+#include <cmath>
 #include <cstdio>
 #include <iostream>
 #include <string>
@@ -41,7 +42,8 @@ identity quaternions; unknown names are errors; fixed joints take no values):
   f_ext: world axes, moment about the body origin (its joint point).
 
 Output (stdout): {"qdd": {"<joint>": value | [list], ...}} for every joint with DOFs, in model
-order, numbers printed with %.17g. Errors: one line on stderr, exit status 1.
+order, numbers printed with %.17g (null if not finite). Errors: one line on stderr, exit status 1;
+non-finite accelerations are an error too (the JSON is still printed).
 
 Example: haptree-fd --scene chain --n 16 --gravity 0,0,-9.81
          haptree-fd --urdf robot.urdf --state state.json
@@ -116,6 +118,18 @@ int main(int argc, char** argv) {
     if (data.diag.singular_pivots > 0)
       std::cerr << "haptree-fd: warning: " << data.diag.singular_pivots
                 << " singular joint systems (result may be meaningless)\n";
+    if (!qdd.allFinite()) {   // printed as null above; a result nobody can use is a failure
+      std::string joints;
+      int count = 0;
+      for (int k = 1; k < model->nbodies; ++k) {
+        bool bad = false;
+        for (int i = 0; i < model->v_num[k]; ++i) bad |= !std::isfinite(qdd(model->v_adr[k] + i));
+        if (bad && count++ < 5) joints += (joints.empty() ? "" : ", ") + model->joint_name[k];
+      }
+      std::cerr << "haptree-fd: error: non-finite accelerations (null) for " << count << " joint(s): " << joints
+                << (count > 5 ? ", ..." : "") << " (state or model out of range)\n";
+      return 1;
+    }
     return 0;
   } catch (const std::exception& e) {
     std::cerr << "haptree-fd: error: " << e.what() << "\n";

@@ -92,6 +92,8 @@ int main(int argc, char** argv) {
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
   CLI11_PARSE(app, argc, argv);
+  if (so.scene == "protein_like" && app.count("--n") > 0 && so.urdf.empty())
+    spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", so.n);
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   so.users = users;
   // The server's limit on incoming user forces: the coupler's own clamp (2 x max_force_n / force_scale).

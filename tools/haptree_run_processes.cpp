@@ -127,6 +127,13 @@ struct Stats {
   std::vector<bool> have_coupler;
 };
 
+// A named extra of a stats message, 0 if absent.
+double extra_value(const lcmt_process_stats& m, const char* name) {
+  for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i)
+    if (m.extra_names[static_cast<size_t>(i)] == name) return m.extra_values[static_cast<size_t>(i)];
+  return 0.0;
+}
+
 struct FeedbackTally {
   int64_t count = 0, nonfinite = 0;
   double max_n = 0;
@@ -323,8 +330,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     std::vector<std::string> sim = {exe_sim};
     sim.insert(sim.end(), common.begin(), common.end());
     if (!se.sim.urdf.empty()) sim.insert(sim.end(), {"--urdf", se.sim.urdf});
-    sim.insert(sim.end(), {"--scene", se.sim.scene, "--n", std::to_string(se.sim.n), "--budget-dofs",
-                           std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--rate-hz",
+    sim.insert(sim.end(), {"--scene", se.sim.scene});
+    if (se.sim.scene != "protein_like") sim.insert(sim.end(), {"--n", std::to_string(se.sim.n)});   // fixed size
+    sim.insert(sim.end(), {"--budget-dofs", std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--rate-hz",
                            fmt_d(se.sim.rate_hz), "--users", std::to_string(se.users), "--max-user-force",
                            fmt_d(se.sim.max_user_force)});
     if (se.sim.gravity.allFinite())
@@ -370,7 +378,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
 
     const auto t0 = Clock::now();
     auto next_line = t0 + std::chrono::seconds(1);
-    double max_force = 0, max_rate = 0, sum_step_ms = 0;
+    double max_rate = 0, sum_step_ms = 0;
     int lines = 0;
     const Child* failed = nullptr;
     lcmt_feedback fb{};
@@ -394,8 +402,17 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
         std::lock_guard<std::mutex> l(stats.m);
         const double step_ms = stats.have_sim ? stats.sim.latency_p50_us * 1e-3 : 0.0;
         const int dofs = stats.have_sim && stats.sim.n_extra > 0 ? static_cast<int>(stats.sim.extra_values[0]) : 0;
-        line = fmt::format("t {:5.1f} s | sim step {:6.3f} ms, {:3d} active DOF, {:5.0f} steps/s", t, step_ms, dofs,
-                           stats.have_sim ? stats.sim.loop_rate_hz : 0.0);
+        if (!stats.have_sim) {
+          line = fmt::format("t {:5.1f} s | sim starting", t);
+        } else {
+          // real-time factor: simulated time per second (s/s; ps/s for molecules), and the share of --sim-rate-hz kept
+          const double rtf = extra_value(stats.sim, "real_time_factor"), kept = extra_value(stats.sim, "rate_fraction");
+          line = fmt::format("t {:5.1f} s | sim step {:6.3f} ms (max {:5.1f}), {:3d} active DOF, {:5.0f} steps/s, "
+                             "real-time factor {:.3g}{}",
+                             t, step_ms, extra_value(stats.sim, "max_step_ms"), dofs, stats.sim.loop_rate_hz, rtf,
+                             kept > 0 && kept < 0.9 ? fmt::format(" (BEHIND: {:.0f} % of the requested rate)", 100 * kept)
+                                                    : std::string());
+        }
         if (stats.have_sim) {
           sum_step_ms += step_ms;
           ++lines;
@@ -403,13 +420,20 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
         for (int u = 0; u < se.users; ++u) {
           const auto& k = stats.couplers[static_cast<size_t>(u)];
           const bool have = stats.have_coupler[static_cast<size_t>(u)];
-          const double f = have && k.n_extra > 0 ? k.extra_values[0] : 0.0;
-          max_rate = std::max(max_rate, have ? k.loop_rate_hz : 0.0);
-          max_force = std::max(max_force, f);
           std::lock_guard<std::mutex> l2(tally_m);
-          line += fmt::format(" | user {}: {:6.0f} Hz, |f| {:5.3f} N, snapshot age {:5.1f} ms, {} feedbacks", u,
-                              have ? k.loop_rate_hz : 0.0, f, have ? k.snapshot_age_ms : -1.0,
-                              tally[static_cast<size_t>(u)].count);
+          const int64_t feedbacks = tally[static_cast<size_t>(u)].count;
+          if (!have) {   // no stats yet: nothing to show but what the launcher read itself
+            line += fmt::format(" | user {}: coupler starting, {} feedbacks", u, feedbacks);
+            continue;
+          }
+          const double f = extra_value(k, "force_n");
+          max_rate = std::max(max_rate, k.loop_rate_hz);
+          const bool grabbing = extra_value(k, "grab_body") > 0;
+          const std::string age = !grabbing                ? std::string("released")
+                                  : k.snapshot_age_ms < 0 ? std::string("no snapshot yet")
+                                                          : fmt::format("snapshot age {:5.1f} ms", k.snapshot_age_ms);
+          line += fmt::format(" | user {}: {:6.0f} Hz, |f| {:5.3f} N, {}, {} feedbacks", u, k.loop_rate_hz, f, age,
+                              feedbacks);
         }
       }
       std::printf("%s\n", line.c_str());
@@ -455,10 +479,10 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                   "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us, "
                   "%lld feedbacks applied by the device\n",
                   u, bodies[static_cast<size_t>(u)], it, acc, rej, fmax, p50, p99, feedbacks);
-      std::printf("  user %d: launcher saw %lld feedback messages (max |f| %.3f N, %lld non-finite)\n", u,
-                  static_cast<long long>(t.count), t.max_n, static_cast<long long>(t.nonfinite));
+      std::printf("  user %d: launcher saw %lld feedback messages (%lld non-finite)\n", u,
+                  static_cast<long long>(t.count), static_cast<long long>(t.nonfinite));
     }
-    std::printf("  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
+    std::printf("  peak coupler rate %.0f Hz (1-s windows)\n", max_rate);
     if (hub)
       std::printf("  hub 127.0.0.1:%d: %lld messages in, %lld out, %lld dropped\n", hub->port(),
                   static_cast<long long>(hub->messages_in()), static_cast<long long>(hub->messages_out()),

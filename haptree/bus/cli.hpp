@@ -39,18 +39,21 @@ inline CLI::Validator finite_in(double lo, double hi, bool open_lo = false) {
 }
 inline CLI::Validator positive(double hi) { return finite_in(0.0, hi, true); }
 
-inline void add_bus_options(CLI::App& app, BusOptions& o) {
+// shm_link / mirror: whether this process has a shared-memory device link / mirrors it (--help lists only
+// the options a process uses).
+inline void add_bus_options(CLI::App& app, BusOptions& o, bool shm_link = true, bool mirror = true) {
   app.add_option("--lcm-url", o.lcm_url, "LCM provider: udpm://... between processes/hosts, memq:// in-process")
       ->envname("LCM_DEFAULT_URL")
       ->capture_default_str();
   app.add_option("--channel-suffix", o.channel_suffix,
                  "appended to every channel name (several sessions on one bus); [A-Za-z0-9_]")
       ->capture_default_str();
-  app.add_flag("--shm", o.shm, "carry device state and feedback over same-host shared memory");
-  app.add_option("--mirror-rate-hz", o.mirror_rate_hz,
-                 "rate at which shared-memory channels are republished on LCM for lcm-logger (0: off)")
-      ->check(finite_in(0.0, 10000.0))
-      ->capture_default_str();
+  if (shm_link) app.add_flag("--shm", o.shm, "carry device state and feedback over same-host shared memory");
+  if (mirror)
+    app.add_option("--mirror-rate-hz", o.mirror_rate_hz,
+                   "rate at which shared-memory channels are republished on LCM for lcm-logger (0: off)")
+        ->check(finite_in(0.0, 10000.0))
+        ->capture_default_str();
 }
 
 // SIGINT/SIGTERM set the returned flag, which the process's run loop polls.

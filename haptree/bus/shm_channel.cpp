@@ -58,6 +58,7 @@ namespace {
 constexpr int64_t kLivenessCheckNs = 5'000'000;   // a reader re-checks its writer's pid every 5 ms
 constexpr int64_t kReopenEveryNs = 20'000'000;    // and looks for a (new) segment every 20 ms when it has none
 constexpr int64_t kYoungSegmentNs = 5'000'000'000;
+constexpr int64_t kForeignLayoutAgeNs = 3600'000'000'000;
 
 std::string uid_suffix() { return "." + std::to_string(::getuid()); }
 
@@ -104,7 +105,9 @@ uint64_t random_instance() noexcept {
 std::string stale_reason(const detail::ShmHeader& h, int64_t age_ns) {
   const uint64_t magic = h.magic.load(std::memory_order_acquire);
   if (magic == 0) return age_ns < kYoungSegmentNs ? "" : "never initialised";
-  if (magic != detail::kShmMagic) return "another layout";
+  // Another layout: an older haptree build. Its segments carry no writer identity, so only ones untouched
+  // for an hour are taken for leftovers (a live older session on the same host keeps its own).
+  if (magic != detail::kShmMagic) return age_ns > kForeignLayoutAgeNs ? "another layout, over an hour old" : "";
   if (h.writer_closed.load(std::memory_order_acquire)) return "writer closed";
   const int64_t pid = h.writer_pid.load();
   if (!process_alive(pid, h.writer_proc_start.load())) return "writer pid " + std::to_string(pid) + " is gone";
@@ -190,6 +193,8 @@ ShmWriter::ShmWriter(const std::string& channel) : ShmChannel(channel) {
           if (p != MAP_FAILED) {
             const auto& h = *static_cast<const detail::ShmHeader*>(p);
             why = stale_reason(h, file_age_ns(st));
+            const uint64_t magic = h.magic.load(std::memory_order_acquire);
+            if (why.empty() && magic != 0 && magic != detail::kShmMagic) why = "another layout";   // our name: take it
             const long long pid = h.writer_pid.load();
             ::munmap(p, sizeof(detail::ShmHeader));
             if (why.empty()) {

@@ -44,8 +44,9 @@ std::string shm_segment_name(const std::string& channel);
 int64_t shm_now_ns() noexcept;
 
 // Unlinks every /dev/shm segment of this user named "haptree.*" whose writer is dead or closed, or whose
-// layout is not this build's (a segment still being created, younger than 5 s, is left alone). Returns the
-// names removed. Called by every ShmWriter and by haptree_run at start.
+// layout is an older build's and which is over an hour old (a segment still being created, younger than 5 s,
+// is left alone). Returns the names removed, each with the reason. Called by every ShmWriter and by
+// haptree_run at start.
 std::vector<std::string> reclaim_stale_shm_segments();
 
 // A mapped segment of a channel. Base of ShmWriter / ShmReader. Throws std::runtime_error with the

@@ -190,6 +190,7 @@ TEST(DegreeReducedStarOracle, UnsplitHugeHubIsRefusedClearly) {
   } catch (const ModelError& e) {
     EXPECT_NE(std::string(e.what()).find("'hub' has 1023 children"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("max_children"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("--max-children 4"), std::string::npos) << e.what();   // the CLI option
   }
 }
 

@@ -38,8 +38,10 @@ int run_three(int out_fd, bool shm) {
   int body = 0;
   const auto off = testing::grab_offset_args(&body);
   const std::string dir = ::testing::TempDir();
-  std::vector<std::string> link = shm ? std::vector<std::string>{"--shm", "--mirror-rate-hz", "500"}
-                                      : std::vector<std::string>{};
+  // Only the device_bridge mirrors the shm link (the coupler has no --mirror-rate-hz).
+  std::vector<std::string> link = shm ? std::vector<std::string>{"--shm"} : std::vector<std::string>{};
+  std::vector<std::string> dev_link = shm ? std::vector<std::string>{"--shm", "--mirror-rate-hz", "500"}
+                                          : std::vector<std::string>{};
   std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--lcm-url", kUrl, "--scene", "protein_like", "--n", "32",
                                   "--rate-hz", "1000"};
   std::vector<std::string> cpl = {HAPTREE_COUPLER, "--lcm-url", kUrl, "--grab-body", std::to_string(body),
@@ -48,7 +50,7 @@ int run_three(int out_fd, bool shm) {
   cpl.insert(cpl.end(), link.begin(), link.end());
   std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--lcm-url", kUrl, "--option", "approach_s=0.2",
                                   "--option", "hold_s=3"};
-  dev.insert(dev.end(), link.begin(), link.end());
+  dev.insert(dev.end(), dev_link.begin(), dev_link.end());
   bus::Bus bus(kUrl);
   std::atomic<int64_t> n{0}, nonfinite{0};
   std::atomic<double> fmax{0};

@@ -136,6 +136,12 @@ TEST(FdCli, ErrorsAreOneLineAndNonZero) {
   r = run("");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("--urdf"), std::string::npos) << r.out;
+  // Issue 11, defect 13: a non-finite result (null in the JSON) is an error, naming the joints.
+  const std::string huge = write_temp("huge.json", R"({"qd": {"j1": 1e300, "j2": 1e300}})");
+  r = run("--scene chain --n 3 --state " + huge);
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find("null"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("non-finite accelerations (null) for"), std::string::npos) << r.out;
   r = run("--help");
   EXPECT_EQ(r.status, 0);
   for (const char* s : {"--urdf", "--scene", "--state", "--gravity", "quaternion", "unknown"})
