@@ -534,7 +534,7 @@ PYBIND11_MODULE(_core, m) {
       .value("workspace_too_small", CouplingStatus::kWorkspaceTooSmall)
       .value("nonfinite", CouplingStatus::kNonFinite);
 
-  py::class_<CouplingSnapshot>(m, "CouplingSnapshot", "Coefficient snapshot; ints/values are views.")
+  py::class_<CouplingSnapshot, std::shared_ptr<CouplingSnapshot>>(m, "CouplingSnapshot", "Coefficient snapshot; ints/values are views.")
       .def(py::init<>())
       .def_readwrite("model_fingerprint", &CouplingSnapshot::model_fingerprint)
       .def_readwrite("version", &CouplingSnapshot::version)
