@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shutil
+import sys
 import subprocess
 
 import numpy as np
@@ -16,7 +17,7 @@ import pytest
 
 import haptree
 import haptree.lcmlog as lcmlog
-from conftest import tool
+from conftest import SOURCE_DIR, tool
 
 URL = "udpm://239.255.76.67:7667?ttl=0"
 SESSION = dict(stiffness=20.0, damping=0.0, position_scale=10.0, force_scale=0.5, max_force_n=3.0)
@@ -186,3 +187,14 @@ def test_reader_rejects_non_logs_and_resyncs(tmp_path, session_log):
     spliced = tmp_path / "spliced.lcmlog"
     spliced.write_bytes(raw[:cut] + b"\x00garbage\xff" * 7 + raw[cut:])
     assert lcmlog.read(spliced).events == lcmlog.read(session_log).events
+
+
+def test_plot_forces_example(session_log, tmp_path):
+    out = tmp_path / "forces.png"
+    r = subprocess.run([sys.executable, str(SOURCE_DIR / "examples/python/plot_forces.py"), session_log,
+                        "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    fb = lcmlog.read(session_log).feedback()
+    for dev in range(USERS):
+        assert f"device {dev}: {(fb.device_id == dev).sum()} feedback messages" in r.stdout
