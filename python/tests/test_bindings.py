@@ -80,6 +80,27 @@ def test_forward_dynamics_matches_haptree_fd(scene, n, seed, mixed, tmp_path):
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * max(1.0, np.abs(want).max()))
 
 
+@pytest.mark.parametrize("urdf,floating", [("arm.urdf", False), ("floating.urdf", False), ("arm.urdf", True)])
+def test_urdf_forward_dynamics_matches_haptree_fd(urdf, floating, tmp_path):
+    path = str(SOURCE_DIR / "tests/data/urdf" / urdf)
+    model = haptree.load_urdf(path, floating_base=floating)
+    state, data = haptree.State(model), haptree.Data(model)
+    random_state(model, state)
+    qdd = haptree.forward_dynamics(model, data, state)
+    ref = fd_cli(["--urdf", path] + (["--floating-base"] if floating else []), state_json(model, state), tmp_path)
+    want = []
+    for k in range(1, model.nbodies):
+        if model.v_num[k]:
+            r = ref[model.joint_name[k]]
+            want += r if isinstance(r, list) else [r]
+    # Same argument as for the generated scenes above.
+    np.testing.assert_allclose(qdd, want, rtol=0, atol=1e-9 * max(1.0, np.abs(want).max()))
+    for bad, what in (("bad_massless.urdf", "massless"), ("bad_planar.urdf", "planar")):
+        with pytest.raises(haptree.UrdfError, match=bad) as e:
+            haptree.load_urdf(str(SOURCE_DIR / "tests/data/urdf" / bad))
+        assert what in str(e.value).lower(), str(e.value)
+
+
 def test_state_arrays_are_views_on_the_cpp_buffers():
     model = haptree.make_scene("chain", n=6)
     state, data = haptree.State(model), haptree.Data(model)
