@@ -4,6 +4,7 @@ The C++ side is reached through its own front ends (the haptree-fd CLI, the Open
 the molecule tests use) or through identities the C++ tests establish, so a binding that passes
 arrays in the wrong layout, the wrong order or a copy instead of the buffer fails here.
 """
+import gc
 import json
 import subprocess
 
@@ -120,7 +121,9 @@ def test_state_arrays_are_views_on_the_cpp_buffers():
     assert q.ctypes.data == state.q.ctypes.data and np.all(q == 0.25)
     # The f_ext view feeds the C++ dynamics: a force on the last body changes q̈ exactly as a
     # separately built State with the same force does.
-    qdd0 = haptree.forward_dynamics(model, data, state).copy()
+    qdd_view = haptree.forward_dynamics(model, data, state)
+    assert isinstance(qdd_view.base, haptree.Data) and qdd_view.ctypes.data == data.qdd.ctypes.data   # no copy
+    qdd0 = qdd_view.copy()
     state.f_ext[model.nbodies - 1] = [0, 0, 0, 0, 3.0, 0]
     qdd1 = haptree.forward_dynamics(model, data, state).copy()
     other = haptree.State(model)
@@ -129,10 +132,16 @@ def test_state_arrays_are_views_on_the_cpp_buffers():
     qdd2 = haptree.forward_dynamics(model, haptree.Data(model), other)
     assert not np.allclose(qdd0, qdd1)
     np.testing.assert_array_equal(qdd1, qdd2)
-    # A view keeps its owner alive.
+    # A view keeps its owner alive (numpy base = the State), and a State its Model.
     view = haptree.State(model).qd
+    gc.collect()
+    assert isinstance(view.base, haptree.State)
     view[:] = 1.0
     assert view.sum() == model.nv
+    orphan = haptree.State(haptree.make_scene("chain", n=3))
+    gc.collect()
+    assert orphan.model.nv == 3 and orphan.q.shape == (3,)
+    haptree.forward_dynamics(orphan.model, haptree.Data(orphan.model), orphan)
     # Data arrays are read-only views (the algorithms own them).
     with pytest.raises(ValueError):
         data.qdd[0] = 1.0
