@@ -183,8 +183,9 @@ struct PyScene {
 
 std::vector<Vec3> positions_from(const Arr& x, int n, const char* what) {
   check_shape(x, n, 3, what);
+  static_assert(sizeof(Vec3) == 3 * sizeof(double), "Vec3 must be 3 packed doubles");
   std::vector<Vec3> v(n);
-  std::memcpy(v.data(), x.data(), sizeof(double) * 3 * n);
+  if (n > 0) std::memcpy(v[0].data(), x.data(), sizeof(double) * 3 * n);
   return v;
 }
 
