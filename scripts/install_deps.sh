@@ -13,6 +13,9 @@ PKGS=(
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
   tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
+  python3-dev pybind11-dev python3-pybind11 python3-numpy   # the haptree Python module (python/)
+  python3-pytest python3-pandas                 # its tests (CTest label python) and the log reader's frames
+  openjdk-17-jdk-headless liblcm-java           # haptree_lcmtypes.jar for lcm-spy (java/)
 )
 missing=()
 for p in "${PKGS[@]}"; do

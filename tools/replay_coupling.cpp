@@ -3,11 +3,16 @@
 // it was computed from; forces rendered while the watchdog ramp was active (time-dependent gain) or with a
 // non-finite input are skipped and counted. The coupler options are read from the log (the coupler publishes
 // them as lcmt_coupler_settings); options given on the command line override them.
+// --start-s / --end-s replay a window (seconds after the log's first event): the reader seeks with
+// lcm_eventlog_seek_to_timestamp (approximate, by file offset) and then keeps exactly the events in
+// [start, end). Feedback near the window start may need a snapshot logged before it: counted as missing.
 #include <CLI/CLI.hpp>
 #include <lcm/lcm-cpp.hpp>
 #include <spdlog/spdlog.h>
 
 #include <cmath>
+#include <cstdint>
+#include <string>
 #include <cstdio>
 #include <map>
 #include <vector>
@@ -25,6 +30,7 @@ int main(int argc, char** argv) {
   std::vector<double> offset{0, 0, 0};
   double tolerance = 1e-12;
   std::string suffix;
+  double start_s = 0, end_s = -1;
   app.add_option("log", log, "LCM log file (lcm-logger or lcm::LogFile)")->required();
   app.add_option("--user", o.user, "user id")->capture_default_str();
   app.add_option("--device", o.device, "device id (default: the one in the logged coupler settings)");
@@ -38,10 +44,19 @@ int main(int argc, char** argv) {
       app.add_option("--max-force-n", o.max_force_n, "force clamp of the session")};
   app.add_option("--tolerance", tolerance, "max allowed deviation, N")->capture_default_str();
   app.add_option("--channel-suffix", suffix, "channel suffix of the session");
+  app.add_option("--start-s", start_s, "replay from this time, seconds after the log's first event")
+      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  app.add_option("--end-s", end_s, "replay up to (excluding) this time, seconds after the first event; -1 = to the end")
+      ->capture_default_str();
   app.footer("The coupler's settings (gains, mapping, clamp) are read from the log's HAPTREE_COUPLER_SETTINGS_<user> "
              "messages (the newest one before each FEEDBACK); an option given here overrides the logged value. "
              "Logs without settings messages need every option of the session.");
   CLI11_PARSE(app, argc, argv);
+  if (end_s != -1 && !(end_s > start_s)) {
+    std::fprintf(stderr, "replay_coupling: --end-s %g must be greater than --start-s %g (or -1 for the end)\n", end_s,
+                 start_s);
+    return 2;
+  }
   const bool device_given = app.count("--device") > 0;
   namespace ch = haptree::bus::channel;
   lcm::LogFile file(log, "r");
@@ -50,6 +65,19 @@ int main(int argc, char** argv) {
     return 2;
   }
   const std::string c_settings = ch::coupler_settings(o.user, suffix), c_snap = ch::coeffs(o.user, suffix);
+  const lcm::LogEvent* ev = file.readNextEvent();
+  if (ev == nullptr) {
+    std::printf("replay_coupling: '%s' holds no events\n", log.c_str());
+    return 1;
+  }
+  const int64_t t0 = ev->timestamp;
+  const int64_t t_begin = t0 + static_cast<int64_t>(std::llround(start_s * 1e6));
+  const int64_t t_end = end_s < 0 ? INT64_MAX : t0 + static_cast<int64_t>(std::llround(end_s * 1e6));
+  if (start_s > 0) {
+    file.seekToTimestamp(t_begin);   // lands near t_begin (before or after): the filter below is exact
+    ev = file.readNextEvent();
+  }
+  int64_t in_window = 0;
   std::map<int64_t, haptree::CouplingSnapshot> snaps;
   std::map<int64_t, haptree::lcmt_device_state> states;
   std::vector<haptree::lcmt_coupler_settings> settings;
@@ -61,7 +89,10 @@ int main(int argc, char** argv) {
   };
   std::vector<DeviceEvent> device_events;
   int64_t undecodable = 0;
-  for (const lcm::LogEvent* ev = file.readNextEvent(); ev != nullptr; ev = file.readNextEvent()) {
+  for (; ev != nullptr; ev = file.readNextEvent()) {
+    if (ev->timestamp < t_begin) continue;
+    if (ev->timestamp >= t_end) break;
+    ++in_window;
     if (ev->channel == c_snap) {
       haptree::lcmt_coupling_snapshot m;
       if (haptree::bus::decode_checked(ev->data, ev->datalen, m) != haptree::bus::DecodeResult::kOk) {
@@ -159,6 +190,9 @@ int main(int argc, char** argv) {
     max_dev = std::max(max_dev, (force_n - logged).cwiseAbs().maxCoeff());
     ++compared;
   }
+  if (start_s > 0 || end_s >= 0)
+    std::printf("replay_coupling: window [%g, %s) s: %lld events\n", start_s,
+                end_s < 0 ? "end" : fmt::format("{:g}", end_s).c_str(), static_cast<long long>(in_window));
   std::printf("replay_coupling: %zu feedback messages, %lld compared, max deviation %.3e N "
               "(skipped: %lld watchdog ramp, %lld without snapshot, %lld missing snapshot/pose; %lld undecodable)\n",
               feedback.size(), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
