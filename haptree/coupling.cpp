@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -144,8 +145,13 @@ Grab make_grab(const Data& data, int body, const Vec3& local_point) {
 }
 
 std::size_t count_subnormals(const double* p, std::size_t n) noexcept {
+  // From the bits (exponent 0, mantissa ≠ 0): a comparison would read them as 0 under DAZ.
   std::size_t c = 0;
-  for (std::size_t i = 0; i < n; ++i) c += std::fpclassify(p[i]) == FP_SUBNORMAL;
+  for (std::size_t i = 0; i < n; ++i) {
+    std::uint64_t b;
+    std::memcpy(&b, p + i, sizeof b);
+    c += (b & 0x7ff0000000000000ull) == 0 && (b & 0x000fffffffffffffull) != 0;
+  }
   return c;
 }
 
@@ -154,7 +160,7 @@ namespace {
 // Subnormal entries → 0 (each changes by less than 2⁻¹⁰²² in absolute value); see the header.
 void flush_subnormals(double* v, std::size_t n) {
   for (std::size_t i = 0; i < n; ++i)
-    if (std::fabs(v[i]) < std::numeric_limits<double>::min()) v[i] = 0.0;
+    if (std::fabs(v[i]) < std::numeric_limits<double>::min()) v[i] = 0.0;   // (also under DAZ)
 }
 
 }  // namespace
