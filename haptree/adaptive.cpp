@@ -62,8 +62,8 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   scratch_h.assign(nb, Vec6::Zero());
   const int hm = std::max(1, t.max_handles);
   scratch_K.assign(hm, Mat6::Zero());
-  scratch_G.assign(hm, Mat3::Zero());
-  scratch_S.assign(hm, Mat3::Zero());
+  scratch_U.assign(hm, Mat3::Zero());
+  scratch_Vb.assign(hm, Mat3::Zero());
   scratch_Sk.assign(hm, Mat3::Zero());
   scratch_V.assign(hm, Mat6::Zero());
   scratch_Y.assign(static_cast<std::size_t>(hm + 1) * hm, Mat6::Zero());
@@ -331,8 +331,8 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   body_dynamics_terms(m, d, st);
   dca_bottom_up(m, d, st);
   compute_metric_coefficients(m, d, ad);
-  // Check of the incremental estimate (§10.4-A against §10.4-B): the exact neglected metric of the
-  // region being replaced — full-articulated top-down over its active nodes, Σ over its frontier.
+  // Check (sets the next interval, see adaptive_step): the exact neglected metric of the region
+  // being replaced, now — full-articulated top-down over its active nodes, Σ A over its frontier.
   for (int root : t.roots)
     for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
   ad.report.check_exact = -1;
@@ -509,8 +509,8 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
     // Φ_xy = [[A, A S_y + B], [U_x, U_x S_y + V_x]] — the 6×6 products without their 0/1 terms.
     const Mat6& Ii = d.Iinv[ref];
     const Mat3 A = Ii.topLeftCorner<3, 3>(), B = Ii.topRightCorner<3, 3>();
-    Mat3* U = ad.scratch_G.data();
-    Mat3* Vb = ad.scratch_S.data();
+    Mat3* U = ad.scratch_U.data();
+    Mat3* Vb = ad.scratch_Vb.data();
     Mat3* Sk = ad.scratch_Sk.data();
     for (int x = 0; x < h; ++x) {
       const Vec3 o = offset(t.handle(F, x));

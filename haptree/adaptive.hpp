@@ -92,7 +92,7 @@ struct AdaptiveData {
   AdaptiveReport report;
   // Scratch for the metric coefficients (sized once from the largest handle count).
   std::vector<Mat6> scratch_K, scratch_V, scratch_Y;
-  std::vector<Mat3> scratch_G, scratch_S, scratch_Sk;   // frontier Φ blocks (per handle)
+  std::vector<Mat3> scratch_U, scratch_Vb, scratch_Sk;   // frontier Φ blocks (per handle)
   std::vector<std::pair<double, int>> heap;
   bool region_selected = false;   // the region came from select_active_region (checkable)
   int interval = 25;              // steps until the next selection (error-controlled mode)
