@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <memory>
 #include <random>
 #include <string>
 #include <vector>
@@ -14,6 +15,7 @@
 
 #include "haptree/coupling.hpp"
 #include "haptree/dca.hpp"
+#include "haptree/fp_env.hpp"
 #include "haptree/scenes.hpp"
 
 namespace {
@@ -42,7 +44,10 @@ struct Row {
   double nodes_mean = 0, u_mean = 0;
   long nodes_max = 0;
   std::size_t bytes_mean = 0, bytes_max = 0;
+  std::size_t subnormals = 0;   // subnormal snapshot values, summed over the grab sets
 };
+
+bool g_keep_subnormals = false;   // --keep-subnormals: snapshots as before issue 13.3
 
 double percentile(std::vector<double>& v, double p) {
   const std::size_t i = std::min(v.size() - 1, static_cast<std::size_t>(p * (v.size() - 1) + 0.5));
@@ -79,7 +84,8 @@ Row run(const std::string& scene, const Model& m, const Data& d, int nf, int set
   for (int s = 0; s < sets; ++s) {
     std::vector<Grab> grabs;
     for (int g = 0; g < nf; ++g) grabs.push_back(make_grab(d, body(rng), Vec3(0.1 * u(rng), 0.1 * u(rng), 0)));
-    make_coupling_snapshot(m, d, grabs, {}, s, 0, snap);
+    make_coupling_snapshot(m, d, grabs, {}, s, 0, snap, !g_keep_subnormals);
+    row.subnormals += count_subnormals(snap.values.data(), snap.values.size());
     ws.reserve_for(snap);
     if (call(snap, forces.data(), ws, out.data()) != CouplingStatus::kOk) {
       std::fprintf(stderr, "coupling failed\n");
@@ -124,7 +130,16 @@ int main(int argc, char** argv) {
   app.add_option("--min-log2", min_log2, "smallest chain: 2^min bodies")->capture_default_str()->check(CLI::Range(1, 20));
   app.add_option("--max-log2", max_log2, "largest chain: 2^max bodies")->capture_default_str()->check(CLI::Range(1, 20));
   app.add_option("--nf", nfs, "numbers of simultaneous grabs")->capture_default_str();
+  bool ftz = false;
+  app.add_flag("--ftz", ftz, "set flush-to-zero/denormals-are-zero (MXCSR) in the benchmark thread");
+  app.add_flag("--keep-subnormals", g_keep_subnormals,
+               "build snapshots without flushing subnormal values (the state before issue 13.3)");
   CLI11_PARSE(app, argc, argv);
+  std::unique_ptr<ScopedFlushDenormals> fp;
+  if (ftz) fp = std::make_unique<ScopedFlushDenormals>();
+  std::printf("snapshots: %s; FTZ/DAZ in this thread: %s\n",
+              g_keep_subnormals ? "subnormals kept" : "subnormals flushed (default)",
+              ScopedFlushDenormals::active() ? "on" : "off");
 
   // Timer overhead (steady_clock pair), for reading the per-call figures.
   std::vector<double> empty(20000);
@@ -134,12 +149,12 @@ int main(int argc, char** argv) {
     e = std::chrono::duration<double, std::micro>(t1 - t0).count();
   }
   std::printf("timer overhead (steady_clock pair): median %.3f µs\n\n", percentile(empty, 0.5));
-  std::printf("| scene | n bodies | DOF | tree depth | n_f | median µs | p99 µs | batch µs/call (median of 100-call batches) | nodes read (mean/max) | mean size of U | snapshot bytes (mean/max) |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| scene | n bodies | DOF | tree depth | n_f | median µs | p99 µs | batch µs/call (median of 100-call batches) | nodes read (mean/max) | mean size of U | snapshot bytes (mean/max) | subnormal values (all sets) |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   auto print = [](const Row& r) {
-    std::printf("| %s | %d | %d | %d | %d | %.3f | %.3f | %.3f | %.1f / %ld | %.1f | %zu / %zu |\n",
+    std::printf("| %s | %d | %d | %d | %d | %.3f | %.3f | %.3f | %.1f / %ld | %.1f | %zu / %zu | %zu |\n",
                 r.scene.c_str(), r.n, r.dofs, r.depth, r.nf, r.median_us, r.p99_us, r.mean_us,
-                r.nodes_mean, r.nodes_max, r.u_mean, r.bytes_mean, r.bytes_max);
+                r.nodes_mean, r.nodes_max, r.u_mean, r.bytes_mean, r.bytes_max, r.subnormals);
     std::fflush(stdout);
   };
   for (int e = min_log2; e <= max_log2; ++e) {

@@ -71,7 +71,7 @@ Row run(mol::MolecularScene& sc, bool adaptive, bool region_skip, int budget, in
     else if (!adaptive) forward_kinematics(m, d, st.q);
     // The selection's full articulated pass needs every body's own force: drop the regions on
     // the steps where adaptive_step will reselect.
-    if (adaptive && region_skip && s > 0 && ad.steps_since_selection >= ao.reselect_every)
+    if (adaptive && region_skip && s > 0 && reselection_due(ad, ao))
       sc.force_field->clear_rigid_regions();
     const double E = sc.compute(d, st.f_ext);
     const double f_ms = ms_since(t0), f_cpu = cpu_ms() - c0;

@@ -27,7 +27,7 @@ void for_each_body(const AssemblyTree& t, int node, std::vector<int>& stack, F&&
 
 }  // namespace
 
-AdaptiveData::AdaptiveData(const Model& m) {
+AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   const auto& t = m.tree;
   const int nn = t.nnodes(), nb = m.nbodies;
   active.assign(nn, 0);
@@ -57,8 +57,14 @@ AdaptiveData::AdaptiveData(const Model& m) {
   active_joints.reserve(nb);
   loaded_bodies.reserve(nb);
   heap.reserve(nn);
+  scratch_stack.reserve(nn);
+  scratch_joint_active.assign(nb, 0);
+  scratch_h.assign(nb, Vec6::Zero());
   const int hm = std::max(1, t.max_handles);
   scratch_K.assign(hm, Mat6::Zero());
+  scratch_U.assign(hm, Mat3::Zero());
+  scratch_Vb.assign(hm, Mat3::Zero());
+  scratch_Sk.assign(hm, Mat3::Zero());
   scratch_V.assign(hm, Mat6::Zero());
   scratch_Y.assign(static_cast<std::size_t>(hm + 1) * hm, Mat6::Zero());
 }
@@ -200,19 +206,22 @@ double metric_at(const Model& m, const Data& d, const AdaptiveData& ad, int node
 // composite frontier nodes, so no difference-formula cancellation (§14.2).
 void lock_velocities(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   bool any = false;
-  std::vector<char> joint_active(m.nbodies, 0);
+  auto& joint_active = ad.scratch_joint_active;
+  std::fill(joint_active.begin(), joint_active.end(), 0);
   for (int J : ad.active_joints) joint_active[J] = 1;
   for (int k = 1; k < m.nbodies && !any; ++k)
     any = !joint_active[k] && m.v_num[k] > 0 && !st.qd.segment(m.v_adr[k], m.v_num[k]).isZero(0);
   if (!any) return;
   body_dynamics_terms(m, d, st);   // I_k, v_k with every joint's q̇
-  std::vector<Vec6> h(m.nbodies, Vec6::Zero());   // subtree momentum at r_k (a force-like vector)
+  auto& h = ad.scratch_h;   // subtree momentum at r_k (a force-like vector)
+  std::fill(h.begin(), h.end(), Vec6::Zero());
   for (int k = m.nbodies - 1; k >= 1; --k) {
     h[k] += d.I[k] * d.v[k];
     if (m.parent[k] > 0) h[m.parent[k]] += shift_force(h[k], -d.d[k]);
   }
-  State impulse(m);
+  State& impulse = ad.impulse;   // q̇ = 0, no loads; τ = the active joints' momenta
   impulse.q = st.q;
+  impulse.tau.setZero();
   for (int J : ad.active_joints) {
     const int a = m.v_adr[J];
     switch (m.joint_type[J]) {
@@ -262,7 +271,7 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   std::sort(ad.active_joints.begin(), ad.active_joints.end());
   d.qdd.setZero();
   // Composite inertia and body placements relative to each frontier node's reference body.
-  std::vector<int> stack;
+  std::vector<int>& stack = ad.scratch_stack;
   for (int F : ad.frontier) {
     const int ref = ad.ref_body[F];
     const Mat3 Rr = d.R[ref];
@@ -309,6 +318,7 @@ void set_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
   }
   forward_kinematics(m, d, st.q);
   build_region(m, d, st, ad);
+  ad.region_selected = false;   // an explicit region: no selection to check against
 }
 
 double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
@@ -321,6 +331,18 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   body_dynamics_terms(m, d, st);
   dca_bottom_up(m, d, st);
   compute_metric_coefficients(m, d, ad);
+  // Check (sets the next interval, see adaptive_step): the exact neglected metric of the region
+  // being replaced, now — full-articulated top-down over its active nodes, Σ A over its frontier.
+  for (int root : t.roots)
+    for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
+  ad.report.check_exact = -1;
+  if (ad.region_selected) {
+    for (int node : ad.active_nodes) dca_top_down_node(m, d, node);
+    double exact = 0;
+    for (int F : ad.frontier)   // (inactive roots are frontier nodes too)
+      if (!t.is_leaf(F)) exact += metric_at(m, d, ad, F);
+    ad.report.check_exact = std::max(0.0, exact);
+  }
   std::fill(ad.active.begin(), ad.active.end(), 0);
   auto& heap = ad.heap;
   heap.clear();
@@ -360,7 +382,48 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   ad.report.selections++;
   ad.last_options = opt;
   ad.steps_since_selection = 0;
+  ad.region_selected = true;
   return ad.report.neglected_metric;
+}
+
+namespace {
+
+bool options_changed(const AdaptiveData& ad, const AdaptiveOptions& opt) {
+  return opt.mode != ad.last_options.mode || opt.epsilon != ad.last_options.epsilon ||
+         opt.budget != ad.last_options.budget;
+}
+
+// The bound on the neglected metric of a region selected with value A (total metric T).
+double metric_bound(const AdaptiveOptions& opt, double A, double T) {
+  return opt.mode == AdaptiveOptions::Mode::kThreshold
+             ? std::max(opt.epsilon, A)
+             : (1 + opt.estimate_growth) * A + opt.estimate_floor_rel * T;
+}
+
+// Error-controlled interval (reselect_every = 0): from the check at this selection — the exact
+// neglected metric A₁ of the replaced region after T steps, against its value A₀ when it was
+// selected — the growth rate λ = ln(A₁/A₀)/T predicts when the new region's value reaches its
+// bound; the next selection comes at half that time (×½ … ×4 of T, ≤ interval_max). A region
+// whose bound was already exceeded halves the interval.
+int next_interval(const AdaptiveOptions& opt, int T, double A0, double T0, double A1,
+                  double A_new, double T_new) {
+  const double floor = opt.estimate_floor_rel * std::max(T0, T_new) + 1e-300;
+  double next;
+  if (A1 > metric_bound(opt, A0, T0)) {
+    next = 0.5 * T;
+  } else {
+    const double lambda = std::log((A1 + floor) / (A0 + floor)) / std::max(1, T);
+    const double room = std::log((metric_bound(opt, A_new, T_new) + floor) / (A_new + floor));
+    next = lambda <= 0 ? 4.0 * T : std::clamp(0.5 * room / lambda, 0.5 * T, 4.0 * T);
+  }
+  return static_cast<int>(std::clamp(next, 1.0, double(std::max(1, opt.interval_max))));
+}
+
+}  // namespace
+
+bool reselection_due(const AdaptiveData& ad, const AdaptiveOptions& opt) {
+  const int every = opt.reselect_every > 0 ? opt.reselect_every : ad.interval;
+  return options_changed(ad, opt) || ad.steps_since_selection >= std::max(1, every);
 }
 
 // Poses and velocities of the reference bodies and of every active joint's endpoints, from the
@@ -406,7 +469,7 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
       const double M = ad.comp_mass[F];
       const Mat3 Ic = R * ad.comp_Ic[F] * R.transpose();
       d.I[ref] = spatial_inertia(M, cw, Ic);
-      d.Iinv[ref] = spatial_inertia_inverse(M, cw, Ic);
+      d.Iinv[ref] = spatial_inertia_inverse(M, cw, Ic);   // also read by coupling snapshots
       d.f_total[ref] = gravity_force(M, cw, ad.gravity_scale * m.gravity);
     }
   }
@@ -441,18 +504,34 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
     auto offset = [&](int jx) {
       return ad.frontier_of_body[jx] == F ? Vec3::Zero() : ad.pred_offset[jx];
     };
+    // Φ_xy = M_x I⁻¹ M_yᵀ with M_x = [[1, 0], [−S_x, 1]], S_x = [o_x]×, I⁻¹ = [[A, B], [L, D]]:
+    // M_x I⁻¹ = [[A, B], [L − S_x A, D − S_x B]] =: [[A, B], [U_x, V_x]], and
+    // Φ_xy = [[A, A S_y + B], [U_x, U_x S_y + V_x]] — the 6×6 products without their 0/1 terms.
+    const Mat6& Ii = d.Iinv[ref];
+    const Mat3 A = Ii.topLeftCorner<3, 3>(), B = Ii.topRightCorner<3, 3>();
+    Mat3* U = ad.scratch_U.data();
+    Mat3* Vb = ad.scratch_Vb.data();
+    Mat3* Sk = ad.scratch_Sk.data();
     for (int x = 0; x < h; ++x) {
-      const int jx = t.handle(F, x);
-      const Mat6 Mx = motion_shift_matrix(offset(jx));
-      const Mat6 MxI = Mx * d.Iinv[ref];
+      const Vec3 o = offset(t.handle(F, x));
+      Sk[x] = skew(o);
+      U[x] = Ii.bottomLeftCorner<3, 3>();
+      U[x].noalias() -= Sk[x] * A;
+      Vb[x] = Ii.bottomRightCorner<3, 3>();
+      Vb[x].noalias() -= Sk[x] * B;
+      d.b(F, x) = shift_motion(a0, o);
+    }
+    for (int x = 0; x < h; ++x)
       for (int y = x; y < h; ++y) {
-        const int jy = t.handle(F, y);
-        const Mat6 blk = MxI * motion_shift_matrix(offset(jy)).transpose();
-        d.Phi(F, h, x, y) = blk;
+        auto blk = d.Phi(F, h, x, y);
+        blk.topLeftCorner<3, 3>() = A;
+        blk.topRightCorner<3, 3>() = B;
+        blk.topRightCorner<3, 3>().noalias() += A * Sk[y];
+        blk.bottomLeftCorner<3, 3>() = U[x];
+        blk.bottomRightCorner<3, 3>() = Vb[x];
+        blk.bottomRightCorner<3, 3>().noalias() += U[x] * Sk[y];
         if (y != x) d.Phi(F, h, y, x) = blk.transpose();
       }
-      d.b(F, x) = Mx * a0;
-    }
   }
   // 3. Hybrid bottom-up and top-down over the active region only.
   for (auto it = ad.active_nodes.rbegin(); it != ad.active_nodes.rend(); ++it) {
@@ -473,12 +552,20 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
 
 const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, AdaptiveData& ad,
                                     const AdaptiveOptions& opt, double dt) {
-  const bool changed = opt.mode != ad.last_options.mode || opt.epsilon != ad.last_options.epsilon ||
-                       opt.budget != ad.last_options.budget;
   ad.report.reselected = false;
-  if (changed || ad.steps_since_selection >= std::max(1, opt.reselect_every)) {
+  if (reselection_due(ad, opt)) {
+    const bool changed = options_changed(ad, opt) || !ad.region_selected;
+    const int T = ad.steps_since_selection;
+    const double A0 = ad.report.neglected_metric, T0 = ad.report.total_metric;
     select_active_region(m, d, st, ad, opt);
     ad.report.reselected = true;
+    if (opt.reselect_every <= 0) {
+      ad.interval = changed || ad.report.check_exact < 0
+                        ? std::max(1, opt.interval_first)
+                        : next_interval(opt, T, A0, T0, ad.report.check_exact,
+                                        ad.report.neglected_metric, ad.report.total_metric);
+    }
+    ad.report.interval = ad.interval;
   }
   ++ad.steps_since_selection;
   adaptive_forward_dynamics(m, d, st, ad);

@@ -14,10 +14,17 @@
 // measured by tools/adaptive_sweep). Simply zeroing q̇ of the locked joints was measured to *add*
 // energy (a counter-rotating child sped up), which is why the projection is worth its O(n) cost.
 //
-// Selection (§9, exact periodic policy §10.4-A): every `reselect_every` steps — or when ε or the
-// budget changes — a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
+// Selection (§9): a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
 // of every node (§8), and a greedy top-down walk activates the nodes with the largest metric until
 // the neglected metric Σ_{inactive} q̈ᵀ A q̈ is ≤ ε (threshold mode) or the DOF budget is used.
+// When it runs (issue 13.1): when ε or the budget changes, and then — with reselect_every = 0, the
+// default — at an error-controlled interval: each selection first computes, exactly, the
+// neglected metric the replaced region has *now* (a check costing |active| top-down steps on the
+// full pass it needs anyway), measures how fast it grew since that region was selected, and sets
+// the next interval to half the predicted time until the new region's neglected metric reaches
+// its bound (ε, or (1 + estimate_growth)× its value in budget mode). A steady scene therefore
+// reselects rarely (the interval grows ×4 per selection up to interval_max), a changing one often.
+// reselect_every > 0 keeps the fixed count.
 #pragma once
 
 #include <vector>
@@ -31,7 +38,11 @@ struct AdaptiveOptions {
   Mode mode = Mode::kBudget;
   double epsilon = 1e-3;     // threshold mode: bound on Σ_{inactive} q̈ᵀ A q̈ (A = 1)
   int budget = 48;           // budget mode: max active DOFs
-  int reselect_every = 10;   // steps between selections (1 = every step)
+  int reselect_every = 0;     // > 0: select every this many steps; 0: error-controlled interval
+  int interval_first = 25;    // error-controlled: first interval (and after ε/budget changes)
+  int interval_max = 1000;    // error-controlled: longest interval
+  double estimate_growth = 1.0;      // budget mode: bound = (1 + this)× the selection's value
+  double estimate_floor_rel = 1e-6;  // ... + this × the total metric (round-off level values)
 };
 
 struct AdaptiveReport {
@@ -43,6 +54,10 @@ struct AdaptiveReport {
   std::int64_t nodes_bottom_up = 0, nodes_top_down = 0;   // last hybrid pass
   bool reselected = false;
   std::int64_t selections = 0;
+  // At the last selection: the exact neglected metric of the region it replaced, at that time
+  // (−1: none, e.g. the first selection), and the interval chosen until the next one.
+  double check_exact = -1;
+  int interval = 0;
 };
 
 // Per-run adaptive workspace, sized once from the Model.
@@ -77,7 +92,15 @@ struct AdaptiveData {
   AdaptiveReport report;
   // Scratch for the metric coefficients (sized once from the largest handle count).
   std::vector<Mat6> scratch_K, scratch_V, scratch_Y;
+  std::vector<Mat3> scratch_U, scratch_Vb, scratch_Sk;   // frontier Φ blocks (per handle)
   std::vector<std::pair<double, int>> heap;
+  bool region_selected = false;   // the region came from select_active_region (checkable)
+  int interval = 25;              // steps until the next selection (error-controlled mode)
+  // Scratch (sized once; nothing in a step or a selection allocates).
+  std::vector<int> scratch_stack;
+  std::vector<char> scratch_joint_active;
+  std::vector<Vec6> scratch_h;
+  State impulse;
 };
 
 // Acceleration metric coefficients (§8) of every node from a completed full DCA bottom-up pass.
@@ -104,8 +127,11 @@ void lock_velocities(const Model& model, Data& data, State& state, AdaptiveData&
 const Eigen::VectorXd& adaptive_forward_dynamics(const Model& model, Data& data, const State& state,
                                                  AdaptiveData& ad) noexcept;
 
-// One adaptive step: reselect if due (or options changed), hybrid dynamics, semi-implicit Euler on
-// the active joints only.
+// Whether the next adaptive_step with these options will select (so callers can prepare loads).
+bool reselection_due(const AdaptiveData& ad, const AdaptiveOptions& options);
+
+// One adaptive step: reselect if due (options changed, or the interval has passed), hybrid
+// dynamics, semi-implicit Euler on the active joints only.
 const AdaptiveReport& adaptive_step(const Model& model, Data& data, State& state, AdaptiveData& ad,
                                     const AdaptiveOptions& options, double dt);
 

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
@@ -142,9 +144,30 @@ Grab make_grab(const Data& data, int body, const Vec3& local_point) {
   return g;
 }
 
+std::size_t count_subnormals(const double* p, std::size_t n) noexcept {
+  // From the bits (exponent 0, mantissa ≠ 0): a comparison would read them as 0 under DAZ.
+  std::size_t c = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    std::uint64_t b;
+    std::memcpy(&b, p + i, sizeof b);
+    c += (b & 0x7ff0000000000000ull) == 0 && (b & 0x000fffffffffffffull) != 0;
+  }
+  return c;
+}
+
+namespace {
+
+// Subnormal entries → 0 (each changes by less than 2⁻¹⁰²² in absolute value); see the header.
+void flush_subnormals(double* v, std::size_t n) {
+  for (std::size_t i = 0; i < n; ++i)
+    if (std::fabs(v[i]) < std::numeric_limits<double>::min()) v[i] = 0.0;   // (also under DAZ)
+}
+
+}  // namespace
+
 void make_coupling_snapshot(const Model& model, const Data& data, const std::vector<Grab>& grabs,
                             const std::vector<Vec6>& f_u_applied, std::int64_t version,
-                            double sim_time, CouplingSnapshot& out) {
+                            double sim_time, CouplingSnapshot& out, bool flush_tiny) {
   const auto& t = model.tree;
   const int G = static_cast<int>(grabs.size());
   if (!f_u_applied.empty() && static_cast<int>(f_u_applied.size()) != G)
@@ -301,6 +324,9 @@ void make_coupling_snapshot(const Model& model, const Data& data, const std::vec
     }
     V.resize(static_cast<std::size_t>(val));
   }
+
+  // 5. No subnormals (issue 13.3): O(snapshot size), once per snapshot.
+  if (flush_tiny) flush_subnormals(V.data(), V.size());
 }
 
 // ---------------------------------------------------------------------------------------------------

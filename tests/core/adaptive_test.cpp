@@ -263,5 +263,97 @@ TEST(Adaptive, PosesAfterAStepAreThoseOfTheNewConfiguration) {
   EXPECT_LE(worst, 1e-12);
 }
 
+
+// Error-controlled reselection (issue 13.1): counts of selections and the exact check, no times.
+struct PullRun {
+  std::shared_ptr<const Model> m;
+  State st;
+  Data d;
+  AdaptiveData ad;
+  explicit PullRun(std::shared_ptr<const Model> model) : m(model), st(*m), d(*m), ad(*m) {}
+  void steps(int n, const AdaptiveOptions& opt, int body, const Vec6& f, double dt) {
+    for (int i = 0; i < n; ++i) {
+      std::fill(st.f_ext.begin(), st.f_ext.end(), Vec6::Zero());
+      st.f_ext[body] = f;
+      adaptive_step(*m, d, st, ad, opt, dt);
+    }
+  }
+};
+
+std::shared_ptr<const Model> weightless_chain(int n) {
+  SceneOptions o;
+  o.n = n;
+  o.seed = 1;
+  o.gravity = Vec3::Zero();
+  return make_chain(o);
+}
+
+Vec6 pull_y(double F) {
+  Vec6 f = Vec6::Zero();
+  f(4) = F;
+  return f;
+}
+
+TEST(AdaptiveReselection, CheckIsTheExactNeglectedMetricOfTheOldRegion) {
+  // dt = 0: the state never changes, so the check at the second selection re-evaluates the first
+  // region at the same state and must reproduce its neglected metric (both are sums of the same
+  // fᵀΨf + fᵀp + η terms; round-off relative to the total metric, which bounds every term).
+  PullRun r(weightless_chain(200));
+  AdaptiveOptions opt;
+  opt.budget = 8;
+  opt.reselect_every = 3;
+  r.steps(1, opt, 199, pull_y(5), 0.0);
+  const double A0 = r.ad.report.neglected_metric, total = r.ad.report.total_metric;
+  EXPECT_EQ(r.ad.report.check_exact, -1.0);   // the first selection has nothing to check
+  r.steps(3, opt, 199, pull_y(5), 0.0);
+  ASSERT_EQ(r.ad.report.selections, 2);
+  ASSERT_GT(A0, 0.0);
+  EXPECT_NEAR(r.ad.report.check_exact, A0, 1e-12 * total);
+  EXPECT_NEAR(r.ad.report.neglected_metric, A0, 1e-12 * total);
+}
+
+TEST(AdaptiveReselection, SteadyPullReselectsRarelyAndFixedCountStillWorks) {
+  // A constant 5 N pull on a weightless 256-chain: early on the neglected metric does not grow, so
+  // each check lets the interval grow ×4 (25, 100, 400); later its measured growth sets it (443,
+  // 229 here): a handful of selections in 1000 steps where the fixed count of 10 makes 100.
+  PullRun r(weightless_chain(256));
+  AdaptiveOptions opt;
+  opt.budget = 8;
+  std::vector<int> intervals;
+  for (int i = 0; i < 1000; ++i) {
+    r.steps(1, opt, 256, pull_y(5), 1e-3);
+    if (r.ad.report.reselected) intervals.push_back(r.ad.report.interval);
+  }
+  ASSERT_GE(intervals.size(), 3u);
+  EXPECT_EQ(std::vector<int>(intervals.begin(), intervals.begin() + 3), (std::vector<int>{25, 100, 400}));
+  EXPECT_LE(intervals.size(), 6u);
+  PullRun fixed(weightless_chain(256));
+  opt.reselect_every = 10;
+  fixed.steps(1000, opt, 256, pull_y(5), 1e-3);
+  EXPECT_EQ(fixed.ad.report.selections, 100);
+  EXPECT_LE(fixed.ad.report.active_dofs, 8);
+}
+
+TEST(AdaptiveReselection, IntervalShrinksWhenTheBoundWasExceeded) {
+  // After a steady phase the pull jumps from the tip to the middle body and grows 100×: the check
+  // at the next selection finds the old region's neglected metric above its bound, and the
+  // interval is halved instead of growing.
+  PullRun r(weightless_chain(256));
+  AdaptiveOptions opt;
+  opt.budget = 8;
+  r.steps(126, opt, 256, pull_y(5), 1e-3);   // selections at steps 0, 25 and 125 (interval 400)
+  ASSERT_EQ(r.ad.report.interval, 400);
+  const double A0 = r.ad.report.neglected_metric, T0 = r.ad.report.total_metric;
+  const std::int64_t sel = r.ad.report.selections;
+  int steps = 0;
+  while (r.ad.report.selections == sel && steps < 1000) {
+    r.steps(1, opt, 128, pull_y(500), 1e-3);
+    ++steps;
+  }
+  ASSERT_EQ(r.ad.report.selections, sel + 1);
+  EXPECT_GT(r.ad.report.check_exact, (1 + opt.estimate_growth) * A0 + opt.estimate_floor_rel * T0);
+  EXPECT_EQ(r.ad.report.interval, 200);
+}
+
 }  // namespace
 }  // namespace haptree

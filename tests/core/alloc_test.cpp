@@ -50,5 +50,22 @@ TEST(Allocation, HybridStepWithoutReselectionAllocatesNothing) {
   EXPECT_FALSE(ad.report.reselected);
 }
 
+TEST(Allocation, SelectionAllocatesNothing) {
+  // Reselection may now come at any step (error-controlled interval): it must not allocate either.
+  auto model = make_protein_like({});
+  State st(*model);
+  Data d(*model);
+  AdaptiveData ad(*model);
+  AdaptiveOptions opt;
+  opt.budget = 48;
+  opt.reselect_every = 1;   // select at every step
+  adaptive_step(*model, d, st, ad, opt, 1e-3);
+  const long before = haptree::testing::allocation_count();
+  for (int i = 0; i < 5; ++i) adaptive_step(*model, d, st, ad, opt, 1e-3);
+  EXPECT_EQ(haptree::testing::allocation_count() - before, 0);
+  EXPECT_TRUE(ad.report.reselected);
+  EXPECT_EQ(ad.report.selections, 6);
+}
+
 }  // namespace
 }  // namespace haptree
