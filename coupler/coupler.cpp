@@ -157,13 +157,17 @@ bool Coupler::iterate(double now) {
   // (a material point of that body from now on), so the spring starts at zero force.
   if (button && !grabbing_) {
     const Vec3 x_h = map_.device_to_scene_point(x_dev);
-    int body = opt_.grab_body;
+    // A pointing device (the browser) names the body it picked on screen; otherwise --grab-body, or
+    // the body nearest the device point.
+    int body = pose_.grab_body >= 1 ? pose_.grab_body : opt_.grab_body;
     if (body < 1) {
       scene_box_.update();
       const lcmt_scene_state& s = scene_box_.front();
       double best = std::numeric_limits<double>::infinity();
-      for (int k = 1; k < s.nbodies && k < static_cast<int>(s.body_position.size()); ++k) {
-        const Vec3 r(s.body_position[k][0], s.body_position[k][1], s.body_position[k][2]);
+      for (int i = 0; i < s.nbodies && i < static_cast<int>(s.body_position.size()); ++i) {
+        const int k = s.first_body + i;   // a large scene comes in chunks: this one's bodies only
+        if (k < 1) continue;
+        const Vec3 r(s.body_position[i][0], s.body_position[i][1], s.body_position[i][2]);
         const double d2 = (r - x_h).squaredNorm();
         if (d2 < best) best = d2, body = k;
       }
@@ -248,9 +252,13 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   s.watchdog_events = safety_.watchdog().trips();
   s.clamp_events = safety_.clamp_events();
   s.nonfinite_events = safety_.nonfinite_events();
-  s.n_extra = 2;
-  s.extra_names = {"force_n", "grab_body"};
-  s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0)};
+  // The mapping too, so a viewer can draw the device point in the scene and a browser device can
+  // invert it (scene = position_scale x device_m + offset).
+  s.extra_names = {"force_n", "grab_body", "position_scale", "offset_x", "offset_y", "offset_z", "force_scale",
+                   "max_force_n"};
+  s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0), opt_.position_scale,
+                    opt_.offset.x(), opt_.offset.y(), opt_.offset.z(), opt_.force_scale, opt_.max_force_n};
+  s.n_extra = static_cast<int32_t>(s.extra_names.size());
   bus_.publish(ch_stats_, s);
   hist_.reset();
 }

@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -223,22 +224,33 @@ void SimServer::publish_snapshots() {
 void SimServer::publish_scene_state(double step_ms) {
   const Model& m = *model_;
   const Data& d = *data_;
+  // 56 bytes of pose + 1 of active flag per body: chunks of <= 1000 bodies stay within one 64 KB datagram.
+  constexpr int kChunk = 1000;
   lcmt_scene_state s;
   bus::stamp(s);
   s.version = version_;
   s.sim_time = state_->t;
-  s.nbodies = m.nbodies;
-  s.body_position.resize(m.nbodies);
-  s.body_orientation.resize(m.nbodies);
-  for (int k = 0; k < m.nbodies; ++k) {
-    s.body_position[k] = {d.r[k].x(), d.r[k].y(), d.r[k].z()};
-    const Quat q(d.R[k]);
-    s.body_orientation[k] = {q.w(), q.x(), q.y(), q.z()};
-  }
   s.active_dofs = ad_->report.active_dofs;
   s.neglected_metric = ad_->report.neglected_metric;
   s.step_ms = step_ms;
-  bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
+  s.total_bodies = m.nbodies;
+  for (int first = 0; first < m.nbodies; first += kChunk) {
+    const int n = std::min(kChunk, m.nbodies - first);
+    s.first_body = first;
+    s.nbodies = n;
+    s.body_position.resize(n);
+    s.body_orientation.resize(n);
+    s.body_active.resize(n);
+    for (int i = 0; i < n; ++i) {
+      const int k = first + i;
+      s.body_position[i] = {d.r[k].x(), d.r[k].y(), d.r[k].z()};
+      const Quat q(d.R[k]);
+      s.body_orientation[i] = {q.w(), q.x(), q.y(), q.z()};
+      const int node = k > 0 ? m.tree.owner_of_joint[k] : -1;
+      s.body_active[i] = node >= 0 && ad_->active[node] ? 1 : 0;
+    }
+    bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
+  }
 }
 
 void SimServer::publish_stats(double rate_hz) {
