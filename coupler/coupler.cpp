@@ -155,7 +155,10 @@ bool Coupler::iterate(double now) {
   bool send_user_force = now >= next_user_force_s_;
   // grab logic: on the button's down edge pick a body; the grab point is the mapped device point itself
   // (a material point of that body from now on), so the spring starts at zero force.
-  if (button && !grabbing_) {
+  // A press counter that moved while the button is held is a new grab whose release never reached us
+  // (latest-value mailboxes coalesce a short release): re-grab.
+  const bool regrab = button && grabbing_ && pose_.grab_seq != grab_seq_;
+  if (button && (!grabbing_ || regrab)) {
     const Vec3 x_h = map_.device_to_scene_point(x_dev);
     // A pointing device (the browser) names the body it picked on screen; otherwise --grab-body, or
     // the body nearest the device point.
@@ -174,6 +177,7 @@ bool Coupler::iterate(double now) {
     }
     if (body >= 1) {
       grabbing_ = true;
+      grab_seq_ = pose_.grab_seq;
       body_ = body;
       grab_point_ = x_h;
       send_user_force = true;

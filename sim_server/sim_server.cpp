@@ -36,6 +36,7 @@ struct SimServer::UserSlot {
   bool grabbing = false;
   int body = -1;
   Vec3 local_point = Vec3::Zero();
+  Vec3 grab_point_msg = Vec3::Zero();   // grab point of the current grab, as the coupler sent it
   Vec6 f_u = Vec6::Zero();     // applied force at the grab point (world axes, scene units)
   Grab grab;
   CouplingSnapshot snapshot;
@@ -103,8 +104,13 @@ void SimServer::step_once() {
     if (u->box.update()) u->latest = u->box.front();
     const lcmt_user_force& msg = u->latest;
     const bool want = msg.active && msg.grab_body >= 1 && msg.grab_body < m.nbodies;
-    if (want != u->grabbing || (want && msg.grab_body != u->body)) grab_changed = true;
-    if (want && (!u->grabbing || msg.grab_body != u->body)) {
+    // The coupler keeps grab_point fixed for one grab: another point is another grab, even on the same
+    // body with the release in between coalesced away by the mailbox.
+    const Vec3 gp(msg.grab_point[0], msg.grab_point[1], msg.grab_point[2]);
+    const bool new_point = want && u->grabbing && gp != u->grab_point_msg;
+    if (want != u->grabbing || (want && msg.grab_body != u->body) || new_point) grab_changed = true;
+    if (want && (!u->grabbing || msg.grab_body != u->body || new_point)) {
+      u->grab_point_msg = gp;
       u->body = msg.grab_body;
       const Vec3 p(msg.grab_point[0], msg.grab_point[1], msg.grab_point[2]);
       u->local_point = d.R[u->body].transpose() * (p - d.r[u->body]);

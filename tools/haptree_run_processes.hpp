@@ -24,6 +24,11 @@ struct SessionOptions {
   double coupler_rate_hz = 10000;
   double position_scale = 10, force_scale = 0.5, stiffness = 20, damping = 0, max_force_n = 3;
   double pull_distance_m = 0.03;
+  // Viewer (issue 12): port 0 = none. Users below scripted_users run the scripted pull until their page
+  // takes over; the others are browser-only (idle until a tab grabs). -1 = all scripted, no browser.
+  int viewer_port = 0;
+  std::string viewer_bind = "127.0.0.1";
+  int scripted_users = -1;
 };
 
 // "" if this process runs in a network namespace other than PID 1's and without a default route

@@ -51,6 +51,8 @@ Status BrowserDevice::read(double t, DeviceReading& out) noexcept {
   const bool button = page_button && t >= switch_until_s_;
   const double dt = prev_t_ >= 0 ? t - prev_t_ : 0.0;
   const Vec3 x_prev = x_;
+  if (button && !prev_button_) ++grab_seq_;
+  out.grab_seq = grab_seq_;
   if (!have_pose_ || (button && !prev_button_)) {
     x_ = target_;   // a press grabs exactly the picked point
   } else if (dt > 0) {

@@ -21,7 +21,7 @@ struct BrowserParams {
   double timeout_s = 0.5;       // no pointer message for this long: released
   double smoothing_s = 0.02;    // first-order filter on the ~60 Hz pointer (the coupler runs at 10 kHz)
   double switch_s = 0.02;       // grab button held up when the source changes
-  double max_abs_m = 10.0;      // |position| above this (device metres) is refused as absurd
+  double max_abs_m = 1e3;       // |position| above this (device metres) is refused as absurd
 };
 
 class BrowserDevice final : public Device {
@@ -51,6 +51,7 @@ class BrowserDevice final : public Device {
   double prev_t_ = -1;
   bool prev_button_ = false;
   int64_t seq_ = 0, refused_ = 0;
+  int32_t grab_seq_ = 0;
   DeviceReading fb_reading_;
 };
 
