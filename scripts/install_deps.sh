@@ -13,6 +13,8 @@ PKGS=(
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
   tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
+  libwebsocketpp-dev libasio-dev                # viewer: HTTP + WebSocket (standalone asio)
+  chromium python3-websocket                    # viewer browser test: headless chromium over CDP
 )
 missing=()
 for p in "${PKGS[@]}"; do

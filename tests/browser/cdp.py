@@ -20,7 +20,7 @@ CHROMIUM_FLAGS = [
     "--disable-default-apps", "--disable-extensions", "--mute-audio",
     # WebGL without a GPU: SwiftShader through ANGLE (NGL needs WebGL)
     "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-    "--remote-allow-origins=*", "--window-size=1100,800",
+    "--remote-allow-origins=*", "--window-size=900,650",
 ]
 
 

@@ -143,16 +143,17 @@ def main():
         before = launcher.forces_since(1, 0)
         check(all(f == 0.0 for f in before), f"user 1 idle before the drag (|f| {before[-3:]})")
 
-        # drag in tab B on a backbone atom in the middle of the chain
+        # drag in tab B on a backbone atom (a hidden tab renders nothing: bring it to the front)
+        b.call("Page.bringToFront")   # on a backbone atom in the middle of the chain
         ca = ca_atoms(url)
         atom = ca[len(ca) // 2]
         t_drag = time.time()
-        drag(b, atom, 90, -60)
-        grabbed = wait_for("tab B's grab to show", lambda: ds(b, "grab") == "1", 15)
+        drag(b, atom, 150, -110)
+        grabbed = wait_for("tab B's grab to show", lambda: ds(b, "grab") == "1", 60)
         check(bool(grabbed), "tab B's press grabbed an atom")
         body = int(ds(b, "grabBody") or 0)
         check(body >= 1, f"user 1 grabs body {body}")
-        wait_for("user 1 force in the status lines", lambda: any(f > 0 for f in launcher.forces_since(1, t_drag)), 20)
+        wait_for("user 1 force in the status lines", lambda: any(f > 0 for f in launcher.forces_since(1, t_drag)), 60)
         time.sleep(2.5)
         fs = launcher.forces_since(1, t_drag)
         check(any(f > 0 for f in fs), f"nonzero feedback force for user 1 in the session's status lines {fs}")
@@ -164,9 +165,11 @@ def main():
         check(os.path.getsize(shot) > 10000, f"screenshot {shot} written ({os.path.getsize(shot)} bytes)")
 
         # tab A takes user 0 over from its script
+        a.call("Page.bringToFront")
+        time.sleep(2)
         scripted_body = int(ds(a, "grabBody") or 0)
         drag(a, ca[len(ca) // 4], -70, 50)
-        wait_for("tab A's grab", lambda: ds(a, "grabBody") not in ("", "0", str(scripted_body)), 15)
+        wait_for("tab A's grab", lambda: ds(a, "grabBody") not in ("", "0", str(scripted_body)), 60)
         check(ds(a, "grabBody") != str(scripted_body),
               f"a page grab takes user 0 over (script body {scripted_body} -> page body {ds(a, 'grabBody')})")
         a.mouse("mouseReleased", 0, 0, button="left")
@@ -174,7 +177,7 @@ def main():
         # a closed tab (dropped WebSocket) releases its user at once
         t_close = time.time()
         browser.close_page(b)
-        wait_for("user 1 released", lambda: [f for f in launcher.forces_since(1, t_close + 1.5)][:1] == [0.0], 20)
+        wait_for("user 1 released", lambda: [f for f in launcher.forces_since(1, t_close + 1.5)][:1] == [0.0], 60)
         after = launcher.forces_since(1, t_close + 1.5)
         check(after and all(f == 0.0 for f in after), f"user 1's force is 0 after its tab closed {after}")
     except Exception as e:  # a failed wait or CDP call: report it with the launcher's tail

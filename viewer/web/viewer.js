@@ -4,9 +4,10 @@
 /* global NGL */
 const USER_COLOURS = ['#d62728', '#1f77b4', '#2ca02c', '#9467bd', '#e377c2', '#17becf', '#bcbd22', '#8c564b'];
 const ACTIVE = 0xff8c00, RIGID = 0x8fa3b8;
-const ARROW_PER_N = 6.0;   // display units (Å) per newton at the device
+const ARROW_PER_N = 8.0;   // display units (Å) per newton at the device (shown in the HUD)
 
 const body = document.body;
+window.addEventListener('error', (e) => { body.dataset.error = String(e.message || e); });
 const stage = new NGL.Stage('stage', { backgroundColor: 'white', tooltip: false, quality: 'low', sampleLevel: 0 });
 window.addEventListener('resize', () => stage.handleResize());
 
@@ -44,7 +45,7 @@ async function onHello(m) {
   comp = await stage.loadFile('/scene.pdb', { ext: 'pdb', defaultRepresentation: false });
   if (m.kind === 'molecule') {
     comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
-    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, sele: 'not hydrogen', aspectRatio: 1.6, radiusScale: 0.9 });
+    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, sele: 'not hydrogen', aspectRatio: 1.5, radiusScale: 0.6 });
   } else {
     // bodies: a sphere per body origin, a stick per joint; size from the typical joint spacing
     const s = comp.structure, a = s.getAtomProxy(), b = s.getAtomProxy(), d = [];
@@ -86,10 +87,10 @@ function drawOverlay(f) {
   const a1 = new Float32Array(3 * n), a2 = new Float32Array(3 * n), ar = new Float32Array(n), cr = new Float32Array(n);
   for (const u of f.users) {
     if (u.id >= n) continue;
-    if (u.grab) { sp.set(u.grab, 6 * u.id); sr[2 * u.id] = 1.1; }
+    if (u.grab) { sp.set(u.grab, 6 * u.id); sr[2 * u.id] = 1.8; }
     if (u.proxy && (u.grab || u.id === f.you)) {
-      sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 0.7;
-      if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.18; }
+      sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 1.2;
+      if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.35; }
     }
   }
   springs.setAttributes({ position1: a1.slice(), position2: a2.slice(), radius: cr });
@@ -99,7 +100,7 @@ function drawOverlay(f) {
     const L = u.fn * ARROW_PER_N;
     a1.set(u.proxy, 3 * u.id);
     a2.set(u.proxy.map((x, k) => x + (u.f[k] / u.fn) * L), 3 * u.id);
-    ar[u.id] = 0.35;
+    ar[u.id] = 0.9;
   }
   spheres.setAttributes({ position: sp, radius: sr });
   arrows.setAttributes({ position1: a1, position2: a2, radius: ar });
@@ -110,7 +111,7 @@ function hud(f, fps) {
     ['sim step', `${f.step_ms.toFixed(2)} ms (${Math.round(f.sim_rate)} steps/s)`],
     ['active / total DOF', `${f.active_dofs} / ${f.dof}`],
     ['sim time', `${f.sim_time.toFixed(3)} · scene state ${f.scene_age_ms.toFixed(0)} ms old`],
-    ['frames/s', `${fps.toFixed(1)}`],
+    ['frames/s', `${fps.toFixed(1)} · arrow ${ARROW_PER_N} Å per N`],
   ];
   let html = rows.map(([k, v]) => `<tr><td class="k">${k}</td><td colspan="2">${v}</td></tr>`).join('');
   for (const u of f.users) {
