@@ -106,7 +106,9 @@ class Browser:
 
     def close_page(self, page):
         page.close()
-        self._json("/json/close/" + page.target_id)
+        req = urllib.request.Request(f"http://127.0.0.1:{self.port}/json/close/{page.target_id}")
+        with urllib.request.urlopen(req, timeout=30) as r:   # answers "Target is closing", not JSON
+            r.read()
 
     def quit(self):
         try:

@@ -96,16 +96,34 @@ def ds(page, key):
     return page.eval(f"(document.body && document.body.dataset.{key}) || ''")
 
 
-def drag(page, atom, dx, dy, steps=12):
-    """Presses on display point `atom`, moves by (dx, dy) pixels, keeps the button down. Returns the start."""
-    p = page.eval(f"haptreePointOnScreen({atom})")
-    x, y = p["x"], p["y"]
-    page.mouse("mouseMoved", x, y)
-    page.mouse("mousePressed", x, y, buttons=1, button="left")
-    for k in range(1, steps + 1):
-        page.mouse("mouseMoved", x + dx * k / steps, y + dy * k / steps, buttons=1, button="left")
-        time.sleep(0.05)
-    return x + dx, y + dy
+def drag(page, atoms, dx, dy, steps=12):
+    """Presses on the first of `atoms` (display points) the page picks as an atom, moves by (dx, dy)
+    pixels and keeps the button down. Returns the atom pressed on, or None."""
+    for atom in atoms:
+        p = page.eval(f"haptreePointOnScreen({atom})")
+        x, y = p["x"], p["y"]
+        page.eval("document.body.dataset.pick = ''")
+        page.mouse("mouseMoved", x, y)
+        page.mouse("mousePressed", x, y, buttons=1, button="left")
+        pick = ds(page, "pick")
+        print(f"press on point {atom} at ({x:.0f}, {y:.0f}): page picked {pick!r}", flush=True)
+        if not pick.startswith("atom"):
+            page.mouse("mouseReleased", x, y, button="left")
+            continue
+        for k in range(1, steps + 1):
+            page.mouse("mouseMoved", x + dx * k / steps, y + dy * k / steps, buttons=1, button="left")
+            time.sleep(0.05)
+        return atom
+    return None
+
+
+def screenshot_when_pulling(page, path, tries=20):
+    """The session's watchdog may zero the force for a moment on a loaded machine: shoot when |f| > 0."""
+    for _ in range(tries):
+        if float(ds(page, "forceN") or 0) > 0:
+            break
+        time.sleep(0.5)
+    page.screenshot(path)
 
 
 def main():
@@ -146,9 +164,9 @@ def main():
         # drag in tab B on a backbone atom (a hidden tab renders nothing: bring it to the front)
         b.call("Page.bringToFront")   # on a backbone atom in the middle of the chain
         ca = ca_atoms(url)
-        atom = ca[len(ca) // 2]
+        mid = len(ca) // 2
         t_drag = time.time()
-        drag(b, atom, 150, -110)
+        check(drag(b, ca[mid:mid + 10], 150, -110) is not None, "tab B pressed on an atom")
         grabbed = wait_for("tab B's grab to show", lambda: ds(b, "grab") == "1", 60)
         check(bool(grabbed), "tab B's press grabbed an atom")
         body = int(ds(b, "grabBody") or 0)
@@ -161,14 +179,15 @@ def main():
         fn = float(ds(b, "forceN") or 0)
         check(0 < fn <= MAX_FORCE_N + 1e-9, f"dataset.forceN {fn} in (0, {MAX_FORCE_N}]")
         shot = os.path.join(out_dir, f"viewer_pull_{tag}.png")
-        b.screenshot(shot)
+        screenshot_when_pulling(b, shot)
         check(os.path.getsize(shot) > 10000, f"screenshot {shot} written ({os.path.getsize(shot)} bytes)")
 
         # tab A takes user 0 over from its script
         a.call("Page.bringToFront")
         time.sleep(2)
         scripted_body = int(ds(a, "grabBody") or 0)
-        drag(a, ca[len(ca) // 4], -70, 50)
+        q = len(ca) // 4
+        check(drag(a, ca[q:q + 10], -70, 50) is not None, "tab A pressed on an atom")
         wait_for("tab A's grab", lambda: ds(a, "grabBody") not in ("", "0", str(scripted_body)), 60)
         check(ds(a, "grabBody") != str(scripted_body),
               f"a page grab takes user 0 over (script body {scripted_body} -> page body {ds(a, 'grabBody')})")

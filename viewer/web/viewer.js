@@ -75,7 +75,8 @@ function makeOverlay(n) {
   for (let u = 0; u < n; ++u) { col2.set(col.subarray(3 * u, 3 * u + 3), 6 * u); col2.set(col.subarray(3 * u, 3 * u + 3).map((x) => 0.55 + 0.45 * x), 6 * u + 3); }
   spheres = new NGL.SphereBuffer({ position: z(6 * n), color: col2, radius: z(2 * n) });
   springs = new NGL.CylinderBuffer({ position1: z(3 * n), position2: z(3 * n), color: col, color2: col, radius: z(n) });
-  arrows = new NGL.ArrowBuffer({ position1: z(3 * n), position2: z(3 * n), color: col, radius: z(n) });
+  // the force arrow in a darker shade: it lies along the spring (f ∝ stretch) but is wider
+  arrows = new NGL.ArrowBuffer({ position1: z(3 * n), position2: z(3 * n), color: col.map((x) => 0.55 * x), radius: z(n) });
   const shape = new NGL.Shape('overlay');
   shape.addBuffer(spheres); shape.addBuffer(springs); shape.addBuffer(arrows);
   overlay = stage.addComponentFromObject(shape);
@@ -90,7 +91,7 @@ function drawOverlay(f) {
     if (u.grab) { sp.set(u.grab, 6 * u.id); sr[2 * u.id] = 1.8; }
     if (u.proxy && (u.grab || u.id === f.you)) {
       sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 1.2;
-      if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.35; }
+      if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.2; }
     }
   }
   springs.setAttributes({ position1: a1.slice(), position2: a2.slice(), radius: cr });
@@ -100,7 +101,7 @@ function drawOverlay(f) {
     const L = u.fn * ARROW_PER_N;
     a1.set(u.proxy, 3 * u.id);
     a2.set(u.proxy.map((x, k) => x + (u.f[k] / u.fn) * L), 3 * u.id);
-    ar[u.id] = 0.9;
+    ar[u.id] = 1.0;
   }
   spheres.setAttributes({ position: sp, radius: sr });
   arrows.setAttributes({ position1: a1, position2: a2, radius: ar });
@@ -193,12 +194,14 @@ window.addEventListener('mousedown', (e) => {
   const [x, y, r] = canvasXY(e);
   if (x < 0 || y < 0 || x > r.width || y > r.height) return;
   const pp = stage.pickingControls.pick(x, y);
-  body.dataset.pick = pp ? (pp.atom ? `atom ${pp.atom.index}` : pp.type) : 'nothing';
-  if (!pp || !pp.atom) return;   // empty space (or an overlay): NGL rotates
+  // an atom, or the nearer atom of a picked bond; anything else (empty space, an overlay): NGL rotates
+  const atom = pp ? (pp.atom || (pp.bond ? pp.closestBondAtom : undefined)) : undefined;
+  body.dataset.pick = atom ? `atom ${atom.index}` : pp ? pp.type : 'nothing';
+  if (!atom) return;
   e.stopPropagation();
   e.preventDefault();
-  const p = new NGL.Vector3(); pp.atom.positionToVector3(p);
-  grab = { i: pp.atom.index, p, x: e.clientX, y: e.clientY };
+  const p = new NGL.Vector3(); atom.positionToVector3(p);
+  grab = { i: atom.index, p, x: e.clientX, y: e.clientY };
   send({ t: 'down', i: grab.i, p: [p.x, p.y, p.z] });
 }, true);
 window.addEventListener('mousemove', (e) => {
