@@ -183,8 +183,9 @@ int main(int argc, char** argv) {
       bo.options["hold_s"] = std::to_string(duration_s > 0 ? std::max(0.5, duration_s - 3.0) : 1e9);
       bridges.push_back(std::make_unique<haptree::DeviceBridge>(bus, bo));
     }
-    spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s", so.scene,
-                 model.nbodies - 1, model.nv, users, fmt::join(bodies, ","), duration_s);
+    spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {}", so.scene,
+                 model.nbodies - 1, model.nv, users, fmt::join(bodies, ","),
+                 duration_s > 0 ? fmt::format("{:.0f} s", duration_s) : std::string("until Ctrl-C"));
     std::unique_ptr<haptree::Viewer> viewer = start_viewer(bus, so, vl, users);
     haptree::bus::HandlerThread handler(bus, 5);
     std::atomic<bool> stop{false};

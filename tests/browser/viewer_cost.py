@@ -16,7 +16,8 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cdp  # noqa: E402
 
-ARGS = ["--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200"]
+ARGS = ["--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200",
+        "--viewer-users", "1"]   # one user (scripted) in every run: the same couplers with and without viewer
 
 
 def free_port():
