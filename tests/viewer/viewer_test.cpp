@@ -13,6 +13,9 @@
 #include <thread>
 
 #include "haptree/bus/bus.hpp"
+#include "haptree/bus/channels.hpp"
+#include "haptree/lcmt_scene_state.hpp"
+#include "sim_server/sim_server.hpp"
 #include "viewer/viewer.hpp"
 
 namespace haptree {
@@ -110,6 +113,46 @@ TEST(Viewer, BusyPortIsAClearError) {
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find(std::to_string(o.port)), std::string::npos) << e.what();
   }
+}
+
+// A scene too large for one datagram comes as chunks of <= 1000 bodies, each < 60 KB, that cover every
+// body once; the active flags agree with the step's active DOF count (chain: one DOF per joint).
+TEST(SceneState, LargeSceneIsSplitIntoDatagramSizedChunksWithActiveFlags) {
+  bus::Bus bus("memq://");
+  SimServerOptions o;
+  o.scene = "chain";
+  o.n = 2500;
+  o.steps = 3;
+  o.budget_dofs = 48;
+  SimServer server(bus, o);
+  std::vector<lcmt_scene_state> got;
+  bus.subscribe<lcmt_scene_state>(bus::channel::scene_state(), [&](const lcmt_scene_state& m, const std::string&) {
+    got.push_back(m);
+  });
+  std::atomic<bool> stop{false};
+  server.run(stop);
+  while (bus.handle_timeout(0) > 0) {
+  }
+  ASSERT_GE(got.size(), 3u);   // the first display period: one state in 3 chunks
+  const int64_t v = got[0].version;
+  std::vector<int> seen(2501, 0);
+  int active = 0;
+  for (const auto& m : got) {
+    if (m.version != v) continue;
+    EXPECT_EQ(m.total_bodies, 2501);
+    EXPECT_LE(m.nbodies, 1000);
+    EXPECT_LT(m.getEncodedSize(), 60000);
+    ASSERT_EQ(static_cast<int>(m.body_active.size()), m.nbodies);
+    for (int i = 0; i < m.nbodies; ++i) {
+      ++seen[static_cast<size_t>(m.first_body + i)];
+      active += m.body_active[static_cast<size_t>(i)];
+    }
+    EXPECT_EQ(m.active_dofs, got[0].active_dofs);
+  }
+  for (int k = 0; k < 2501; ++k) EXPECT_EQ(seen[static_cast<size_t>(k)], 1) << "body " << k;
+  EXPECT_EQ(active, got[0].active_dofs);
+  EXPECT_GT(active, 0);
+  EXPECT_EQ(seen.size(), 2501u);
 }
 
 }  // namespace
