@@ -342,21 +342,29 @@ bool Coupler::iterate(double now) {
   bool send_user_force = now >= next_user_force_s_;
   // grab logic: on the button's down edge pick a body; the grab point is the mapped device point itself
   // (a material point of that body from now on), so the spring starts at zero force.
-  if (button && !grabbing_) {
+  // A press counter that moved while the button is held is a new grab whose release never reached us
+  // (latest-value mailboxes coalesce a short release): re-grab.
+  const bool regrab = button && grabbing_ && pose_.grab_seq != grab_seq_;
+  if (button && (!grabbing_ || regrab)) {
     const Vec3 x_h = map_.device_to_scene_point(x_dev);
-    int body = opt_.grab_body;
+    // A pointing device (the browser) names the body it picked on screen; otherwise --grab-body, or
+    // the body nearest the device point.
+    int body = pose_.grab_body >= 1 ? pose_.grab_body : opt_.grab_body;
     if (body < 1) {
       scene_box_.update();
       const lcmt_scene_state& s = scene_box_.front();
       double best = std::numeric_limits<double>::infinity();
-      for (int k = 1; k < s.nbodies && k < static_cast<int>(s.body_position.size()); ++k) {
-        const Vec3 r(s.body_position[k][0], s.body_position[k][1], s.body_position[k][2]);
+      for (int i = 0; i < s.nbodies && i < static_cast<int>(s.body_position.size()); ++i) {
+        const int k = s.first_body + i;   // a large scene comes in chunks: this one's bodies only
+        if (k < 1) continue;
+        const Vec3 r(s.body_position[i][0], s.body_position[i][1], s.body_position[i][2]);
         const double d2 = (r - x_h).squaredNorm();
         if (d2 < best) best = d2, body = k;
       }
     }
     if (body >= 1) {
       grabbing_ = true;
+      grab_seq_ = pose_.grab_seq;
       body_ = body;
       grab_point_ = x_h;
       send_user_force = true;
@@ -445,11 +453,15 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   s.watchdog_events = safety_.watchdog().trips();
   s.clamp_events = safety_.clamp_events() + c_.user_force_clamps.load();
   s.nonfinite_events = safety_.nonfinite_events();
-  s.n_extra = 5;
-  s.extra_names = {"force_n", "grab_body", "restarts", "duplicate_rejected", "pose_rejected"};
+  // The mapping too, so a viewer can draw the device point in the scene and a browser device can
+  // invert it (scene = position_scale x device_m + offset).
+  s.extra_names = {"force_n", "grab_body", "restarts", "duplicate_rejected", "pose_rejected", "position_scale",
+                   "offset_x", "offset_y", "offset_z", "force_scale", "max_force_n"};
   s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0),
                     static_cast<double>(c_.restarts.load()), static_cast<double>(c_.duplicate_rejected.load()),
-                    static_cast<double>(c_.pose_rejected.load())};
+                    static_cast<double>(c_.pose_rejected.load()), opt_.position_scale, opt_.offset.x(),
+                    opt_.offset.y(), opt_.offset.z(), opt_.force_scale, opt_.max_force_n};
+  s.n_extra = static_cast<int32_t>(s.extra_names.size());
   bus_.publish(ch_stats_, s);
   hist_.reset();
   // Another writer on our device's FEEDBACK segment? Its newest message would carry another instance id.

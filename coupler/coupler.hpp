@@ -119,6 +119,7 @@ class Coupler {
   // loop state
   CouplingWorkspace ws_;
   bool grabbing_ = false;
+  int32_t grab_seq_ = 0;               // device's press counter at our grab
   int body_ = -1;
   Vec3 grab_point_ = Vec3::Zero();
   int64_t user_seq_ = 0, feedback_seq_ = 0;

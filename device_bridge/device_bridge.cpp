@@ -34,6 +34,9 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   cfg.spec.max_force_n = opt_.max_force_n;
   cfg.spec.rate_hz = opt_.rate_hz;
   cfg.options = opt_.options;
+  cfg.bus = &bus_;   // devices fed from the bus (browser) subscribe here
+  cfg.device_id = opt_.device;
+  cfg.channel_suffix = opt_.channel_suffix;
   device_ = device::make_device(opt_.kind, cfg);
   if (!device_) throw std::runtime_error("device_bridge: unknown device kind '" + opt_.kind + "'");
   const device::Status s = device_->open();

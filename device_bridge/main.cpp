@@ -16,7 +16,7 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
   app.add_option("--device", o.device, "device id")->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay (registry name)")->capture_default_str();
+  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press)")->capture_default_str();
   app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
   app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();

@@ -51,6 +51,7 @@ struct SimServer::UserSlot {
   bool grabbing = false;
   int body = -1;
   Vec3 local_point = Vec3::Zero();
+  Vec3 grab_point_msg = Vec3::Zero();   // grab point of the current grab, as the coupler sent it
   Vec6 f_u = Vec6::Zero();     // applied force at the grab point (world axes, scene units)
   Grab grab;
   CouplingSnapshot snapshot;
@@ -204,8 +205,13 @@ void SimServer::step_once() {
     take_user_force(*u, now);
     const lcmt_user_force& msg = u->latest;
     const bool want = msg.active && msg.grab_body >= 1 && msg.grab_body < m.nbodies;
-    if (want != u->grabbing || (want && msg.grab_body != u->body)) grab_changed = true;
-    if (want && (!u->grabbing || msg.grab_body != u->body)) {
+    // The coupler keeps grab_point fixed for one grab: another point is another grab, even on the same
+    // body with the release in between coalesced away by the mailbox.
+    const Vec3 gp(msg.grab_point[0], msg.grab_point[1], msg.grab_point[2]);
+    const bool new_point = want && u->grabbing && gp != u->grab_point_msg;
+    if (want != u->grabbing || (want && msg.grab_body != u->body) || new_point) grab_changed = true;
+    if (want && (!u->grabbing || msg.grab_body != u->body || new_point)) {
+      u->grab_point_msg = gp;
       u->body = msg.grab_body;
       const Vec3 p(msg.grab_point[0], msg.grab_point[1], msg.grab_point[2]);
       u->local_point = d.R[u->body].transpose() * (p - d.r[u->body]);
@@ -326,22 +332,33 @@ void SimServer::publish_snapshots() {
 void SimServer::publish_scene_state(double step_ms) {
   const Model& m = *model_;
   const Data& d = *data_;
+  // 56 bytes of pose + 1 of active flag per body: chunks of <= 1000 bodies stay within one 64 KB datagram.
+  constexpr int kChunk = 1000;
   lcmt_scene_state s;
   bus::stamp(s, instance_id_);
   s.version = version_;
   s.sim_time = state_->t;
-  s.nbodies = m.nbodies;
-  s.body_position.resize(m.nbodies);
-  s.body_orientation.resize(m.nbodies);
-  for (int k = 0; k < m.nbodies; ++k) {
-    s.body_position[k] = {d.r[k].x(), d.r[k].y(), d.r[k].z()};
-    const Quat q(d.R[k]);
-    s.body_orientation[k] = {q.w(), q.x(), q.y(), q.z()};
-  }
   s.active_dofs = ad_->report.active_dofs;
   s.neglected_metric = ad_->report.neglected_metric;
   s.step_ms = step_ms;
-  bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
+  s.total_bodies = m.nbodies;
+  for (int first = 0; first < m.nbodies; first += kChunk) {
+    const int n = std::min(kChunk, m.nbodies - first);
+    s.first_body = first;
+    s.nbodies = n;
+    s.body_position.resize(n);
+    s.body_orientation.resize(n);
+    s.body_active.resize(n);
+    for (int i = 0; i < n; ++i) {
+      const int k = first + i;
+      s.body_position[i] = {d.r[k].x(), d.r[k].y(), d.r[k].z()};
+      const Quat q(d.R[k]);
+      s.body_orientation[i] = {q.w(), q.x(), q.y(), q.z()};
+      const int node = k > 0 ? m.tree.owner_of_joint[k] : -1;
+      s.body_active[i] = node >= 0 && ad_->active[node] ? 1 : 0;
+    }
+    bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
+  }
 }
 
 // Every field set (issue 11, defect 6): counters from SimServerCounters, latencies from the last step

@@ -25,10 +25,33 @@
 #include "haptree/dca.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
+#include "viewer/viewer.hpp"
 
 namespace {
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
+
+// The viewer (issue 12), embedded: the same class as the `viewer` executable, on the session's bus.
+struct ViewerLaunch {
+  int port = 8080;              // 0 = no viewer
+  std::string bind = "127.0.0.1";
+  int users = 2;                // tabs that can pull at once (couplers are started for them)
+};
+std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const haptree::SimServerOptions& so,
+                                              const ViewerLaunch& vl, int users) {
+  if (vl.port <= 0) return nullptr;
+  haptree::ViewerOptions vo;
+  vo.bind = vl.bind;
+  vo.port = vl.port;
+  vo.scene = so.scene;
+  vo.n = so.n;
+  vo.urdf = so.urdf;
+  vo.users = users;
+  auto v = std::make_unique<haptree::Viewer>(bus, vo);
+  std::printf("viewer: open %s\n", v->url().c_str());
+  std::fflush(stdout);
+  return v;
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -41,7 +64,8 @@ int main(int argc, char** argv) {
   so.scene = "protein_like";
   so.n = 64;
   so.rate_hz = 1000;
-  double duration_s = 10;
+  double duration_s = 0;
+  ViewerLaunch vl;
   int users = 1;
   double coupler_rate_hz = 10000;
   double position_scale = 10, force_scale = 0.5, stiffness = 20, damping = 0, max_force_n = 3;
@@ -59,7 +83,16 @@ int main(int argc, char** argv) {
                  "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
       ->delimiter(',')->expected(3)->check(haptree::bus::finite_in(-1e4, 1e4));
   app.add_option("--sim-rate-hz", so.rate_hz, "sim step rate (0 = free-running)")->check(haptree::bus::finite_in(0, 1e6))->capture_default_str();
-  app.add_option("--duration-s", duration_s, "wall-clock run time")->check(haptree::bus::positive(1e7))->capture_default_str();
+  app.add_option("--duration-s", duration_s, "wall-clock run time, s (0 = until Ctrl-C)")
+      ->check(haptree::bus::finite_in(0.0, 1e7))->capture_default_str();
+  app.add_option("--viewer-port", vl.port,
+                 "web viewer at http://127.0.0.1:PORT/ (the scene live; a tab's mouse pulls as a user); 0 = off")
+      ->check(CLI::Range(0, 65535))->capture_default_str();
+  app.add_option("--viewer-bind", vl.bind, "address the viewer listens on (127.0.0.1: this machine only)")
+      ->capture_default_str();
+  app.add_option("--viewer-users", vl.users,
+                 "users a page can be (couplers are started for max(--users, this); the ones past --users have "
+                 "no script)")->check(CLI::Range(1, 8))->capture_default_str();
   app.add_option("--users", users, "users (one coupler + one scripted device each, pulling different bodies)")
       ->check(CLI::Range(1, 8))->capture_default_str();
   app.add_option("--coupler-rate-hz", coupler_rate_hz, "coupling loop rate")->check(haptree::bus::positive(1e5))->capture_default_str();
@@ -95,6 +128,8 @@ int main(int argc, char** argv) {
   if (so.scene == "protein_like" && app.count("--n") > 0 && so.urdf.empty())
     spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", so.n);
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
+  const int scripted_users = users;
+  if (vl.port > 0) users = std::max(users, vl.users);   // couplers + browser devices for every page user
   so.users = users;
   // The server's limit on incoming user forces: the coupler's own clamp (2 x max_force_n / force_scale).
   {
@@ -120,6 +155,9 @@ int main(int argc, char** argv) {
     se.pull_distance_m = pull_distance_m;
     se.stale_after_s = stale_after_s;
     se.mirror_rate_hz = mirror_rate_hz;
+    se.viewer_port = vl.port;
+    se.viewer_bind = vl.bind;
+    se.scripted_users = vl.port > 0 ? scripted_users : -1;
     return haptree::tools::run_processes(po, se, g_stop);
   }
   try {
@@ -155,24 +193,28 @@ int main(int argc, char** argv) {
       couplers.push_back(std::make_unique<haptree::Coupler>(bus, co));
       haptree::DeviceBridgeOptions bo;
       bo.device = u;
-      bo.kind = "scripted";
+      bo.kind = vl.port > 0 ? "browser" : "scripted";   // with a viewer the page can take the user over
+      if (vl.port > 0) bo.options["fallback"] = u < scripted_users ? "scripted" : "none";
       bo.rate_hz = 1000;
       bo.max_force_n = max_force_n;
       bo.feedback_timeout_s = 0.05;
       bo.options["grab_m"] = "0,0,0.01";
       bo.options["pull_distance_m"] = std::to_string(pull_distance_m);
       bo.options["pull_direction"] = u % 2 == 0 ? "1,0,0" : "0,1,0";
-      bo.options["hold_s"] = std::to_string(std::max(0.5, duration_s - 3.0));
+      bo.options["hold_s"] = std::to_string(duration_s > 0 ? std::max(0.5, duration_s - 3.0) : 1e9);
       bridges.push_back(std::make_unique<haptree::DeviceBridge>(bus, bo));
     }
-    spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s", so.scene,
-                 model.nbodies - 1, model.nv, users, fmt::join(bodies, ","), duration_s);
+    spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {}", so.scene,
+                 model.nbodies - 1, model.nv, users, fmt::join(bodies, ","),
+                 duration_s > 0 ? fmt::format("{:.0f} s", duration_s) : std::string("until Ctrl-C"));
+    std::unique_ptr<haptree::Viewer> viewer = start_viewer(bus, so, vl, users);
     haptree::bus::HandlerThread handler(bus, 5);
     std::atomic<bool> stop{false};
     std::vector<std::thread> threads;
     threads.emplace_back([&] { server.run(stop); });
     for (auto& c : couplers) threads.emplace_back([&stop, p = c.get()] { p->run(stop); });
     for (auto& b : bridges) threads.emplace_back([&stop, p = b.get()] { p->run(stop); });
+    if (viewer) threads.emplace_back([&stop, p = viewer.get()] { p->run(stop); });
     const auto t0 = std::chrono::steady_clock::now();
     double max_force = 0, max_rate = 0, sum_step_ms = 0;
     int lines = 0;
@@ -194,7 +236,7 @@ int main(int argc, char** argv) {
       ++lines;
       std::printf("%s\n", line.c_str());
       std::fflush(stdout);
-      if (t >= duration_s) break;
+      if (duration_s > 0 && t >= duration_s) break;
     }
     stop = true;
     for (auto& th : threads) th.join();
@@ -214,6 +256,10 @@ int main(int argc, char** argv) {
                   bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99));
     }
     std::printf("  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
+    if (viewer)
+      std::printf("  viewer: %lld frames sent, %lld dropped for slow tabs, %lld pointer messages\n",
+                  static_cast<long long>(viewer->frames_sent()), static_cast<long long>(viewer->frames_dropped()),
+                  static_cast<long long>(viewer->pointer_messages()));
     return 0;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

@@ -356,18 +356,32 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       children.push_back({cu, log_dir + "/" + cu + ".log"});
       children.back().pid = spawn(cpl, children.back().log);
     }
+    const bool browser = se.viewer_port > 0;   // the page drives a browser device per user
     for (int u = 0; u < se.users; ++u) {
       std::vector<std::string> dev = {exe_dev};
       dev.insert(dev.end(), common.begin(), common.end());
-      dev.insert(dev.end(), {"--device", std::to_string(u), "--kind", "scripted", "--rate-hz", "1000",
+      if (browser)
+        dev.insert(dev.end(), {"--option", u < se.scripted_users ? "fallback=scripted" : "fallback=none"});
+      dev.insert(dev.end(), {"--device", std::to_string(u), "--kind", browser ? "browser" : "scripted", "--rate-hz", "1000",
                              "--max-force-n", fmt_d(se.max_force_n), "--option", "grab_m=0,0,0.01", "--option",
                              "pull_distance_m=" + fmt_d(se.pull_distance_m), "--option",
                              std::string("pull_direction=") + (u % 2 == 0 ? "1,0,0" : "0,1,0"), "--option",
-                             "hold_s=" + fmt_d(std::max(0.5, se.duration_s - 3.0))});
+                             "hold_s=" + fmt_d(se.duration_s > 0 ? std::max(0.5, se.duration_s - 3.0) : 1e9)});
       if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
       const std::string du = "device_bridge_" + std::to_string(u);
       children.push_back({du, log_dir + "/" + du + ".log"});
       children.back().pid = spawn(dev, children.back().log);
+    }
+    if (browser) {   // the viewer (issue 12), beside the others on the same bus
+      std::vector<std::string> vw = {find_executable("viewer", po.bin_dir, po.argv0)};
+      vw.insert(vw.end(), common.begin(), common.end());
+      vw.insert(vw.end(), {"--port", std::to_string(se.viewer_port), "--bind", se.viewer_bind, "--scene", se.sim.scene,
+                           "--n", std::to_string(se.sim.n), "--users", std::to_string(se.users)});
+      if (!se.sim.urdf.empty()) vw.insert(vw.end(), {"--urdf", se.sim.urdf});
+      children.push_back({"viewer", log_dir + "/viewer.log"});
+      children.back().pid = spawn(vw, children.back().log);
+      std::printf("viewer: open http://%s:%d/\n", se.viewer_bind.c_str(), se.viewer_port);
+      std::fflush(stdout);
     }
     spdlog::info("haptree_run --processes: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s; "
                  "bus {} ({}), logs in {}",
@@ -438,7 +452,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       }
       std::printf("%s\n", line.c_str());
       std::fflush(stdout);
-      if (t >= se.duration_s) break;
+      if (se.duration_s > 0 && t >= se.duration_s) break;
     }
     if (stop.load() && !failed) std::printf("haptree_run: interrupted, stopping the children\n");
     if (failed) {

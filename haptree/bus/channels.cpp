@@ -31,6 +31,7 @@ std::string feedback(int id, const std::string& s) { return with_id("HAPTREE_FEE
 std::string user_force(int id, const std::string& s) { return with_id("HAPTREE_USER_FORCE_", id, s); }
 std::string coeffs(int id, const std::string& s) { return with_id("HAPTREE_COEFFS_", id, s); }
 std::string coupler_settings(int id, const std::string& s) { return with_id("HAPTREE_COUPLER_SETTINGS_", id, s); }
+std::string pointer(int id, const std::string& s) { return with_id("HAPTREE_POINTER_", id, s); }
 std::string scene_state(const std::string& s) {
   std::string n = "HAPTREE_SCENE_STATE" + s;
   checked(n);

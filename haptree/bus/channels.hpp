@@ -12,6 +12,7 @@ std::string device_state(int device_id, const std::string& suffix = "");  // HAP
 std::string feedback(int device_id, const std::string& suffix = "");      // HAPTREE_FEEDBACK_<id>
 std::string user_force(int user_id, const std::string& suffix = "");      // HAPTREE_USER_FORCE_<id>
 std::string coeffs(int user_id, const std::string& suffix = "");          // HAPTREE_COEFFS_<id>
+std::string pointer(int user_id, const std::string& suffix = "");         // HAPTREE_POINTER_<id> (viewer -> browser device)
 std::string scene_state(const std::string& suffix = "");                  // HAPTREE_SCENE_STATE
 std::string stats(const std::string& process, const std::string& suffix = "");  // HAPTREE_STATS_<PROCESS>
 std::string coupler_settings(int user_id, const std::string& suffix = "");   // HAPTREE_COUPLER_SETTINGS_<id>

@@ -16,6 +16,8 @@ void to_lcmt(const DeviceReading& r, int32_t device_id, int64_t utime, lcmt_devi
   m.orientation[2] = r.orientation.y();
   m.orientation[3] = r.orientation.z();
   m.buttons = r.buttons;
+  m.grab_body = r.grab_body;
+  m.grab_seq = r.grab_seq;
 }
 
 void from_lcmt(const lcmt_device_state& m, DeviceReading& r) noexcept {
@@ -27,6 +29,8 @@ void from_lcmt(const lcmt_device_state& m, DeviceReading& r) noexcept {
   }
   r.orientation = Quat(m.orientation[0], m.orientation[1], m.orientation[2], m.orientation[3]);
   r.buttons = m.buttons;
+  r.grab_body = m.grab_body;
+  r.grab_seq = m.grab_seq;
 }
 
 void to_lcmt(const FeedbackCommand& c, int32_t device_id, int64_t seq, int64_t utime, lcmt_feedback& m) noexcept {

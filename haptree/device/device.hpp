@@ -29,6 +29,8 @@ struct DeviceReading {
   Quat orientation = Quat::Identity();
   Vec3 linear_velocity_mps = Vec3::Zero();
   int32_t buttons = 0;                         // bit i = button i; kButtonGrab = grab
+  int32_t grab_body = 0;                       // > 0: body picked on screen (browser device); 0: coupler picks
+  int32_t grab_seq = 0;                        // +1 per press (browser device): a change = a new grab
 };
 
 // ros2_control's three outcomes: go on, failed (reason), or stop using this device (reason).

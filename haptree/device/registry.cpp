@@ -4,6 +4,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "haptree/bus/channels.hpp"
+#include "haptree/device/browser.hpp"
 #include "haptree/device/replay.hpp"
 #include "haptree/device/simulated.hpp"
 
@@ -75,6 +77,26 @@ struct Registry {
       if (log.empty() || channel.empty())
         throw std::invalid_argument("device 'replay' needs options log=<file.lcm> and channel=<name>");
       return std::make_unique<ReplayDevice>(c.spec, log, channel, option_double(c, "loop", 0) != 0);
+    };
+    factories["browser"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
+      if (!c.bus) throw std::invalid_argument("device 'browser' reads the viewer's pointer from the bus: no bus given");
+      BrowserParams p;
+      p.timeout_s = option_double(c, "timeout_s", p.timeout_s);
+      p.smoothing_s = option_double(c, "smoothing_s", p.smoothing_s);
+      p.switch_s = option_double(c, "switch_s", p.switch_s);
+      if (!(p.timeout_s > 0 && p.timeout_s <= 10) || !(p.smoothing_s > 0 && p.smoothing_s <= 1) ||
+          !(p.switch_s >= 0 && p.switch_s <= 1))
+        throw std::invalid_argument("device 'browser': timeout_s must be in (0, 10], smoothing_s in (0, 1], "
+                                    "switch_s in [0, 1]");
+      const std::string fb = option_string(c, "fallback", "none");
+      std::unique_ptr<Device> fallback;
+      if (fb == "scripted") {
+        fallback = std::make_unique<ScriptedDevice>(c.spec, make_grab_pull_release(script_options(c)));
+      } else if (fb != "none") {
+        throw std::invalid_argument("device 'browser': fallback='" + fb + "' (expected scripted or none)");
+      }
+      return std::make_unique<BrowserDevice>(c.spec, p, *c.bus, bus::channel::pointer(c.device_id, c.channel_suffix),
+                                             std::move(fallback));
     };
   }
 };

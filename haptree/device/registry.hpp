@@ -1,6 +1,6 @@
 // Devices by name, so real SDKs plug in without the processes knowing them:
 //   haptree::device::register_device("phantom", [](const DeviceConfig& c) { return std::make_unique<...>(c); });
-// Built in: "scripted", "virtual_hand", "replay" (options below).
+// Built in: "scripted", "virtual_hand", "replay", "browser" (options below).
 #pragma once
 
 #include <functional>
@@ -11,6 +11,10 @@
 
 #include "haptree/device/device.hpp"
 
+namespace haptree::bus {
+class Bus;
+}
+
 namespace haptree::device {
 
 struct DeviceConfig {
@@ -20,7 +24,13 @@ struct DeviceConfig {
   //    ("x,y,z"), pull_distance_m, approach_s, settle_s, pull_s, hold_s, rest_s
   //  virtual_hand: mass_kg, stiffness_n_per_m, damping_n_s_per_m, max_substep_s
   //  replay: log (path, required), channel (required), loop (0/1)
+  //  browser (the mouse in the viewer's page, needs bus): fallback (scripted|none, default none; the
+  //    scripted options above apply to it), timeout_s, smoothing_s, switch_s
   std::map<std::string, std::string> options;
+  // Set by device_bridge for devices fed from the bus (browser): the bus, this device's id, the suffix.
+  bus::Bus* bus = nullptr;
+  int device_id = 0;
+  std::string channel_suffix;
 };
 
 using DeviceFactory = std::function<std::unique_ptr<Device>(const DeviceConfig&)>;

@@ -75,6 +75,9 @@ lcmt_scene_state make(lcmt_scene_state* m) {
   m->active_dofs = ri();
   m->neglected_metric = rd();
   m->step_ms = rd();
+  m->body_active.assign(17, 1);
+  m->first_body = 0;
+  m->total_bodies = 17;
   return *m;
 }
 lcmt_process_stats make(lcmt_process_stats* m) {

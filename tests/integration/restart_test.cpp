@@ -188,7 +188,7 @@ TEST(Restart, ServerKilledMidSession) {
 
 TEST(Restart, LauncherProcessesSmoke) {
   const std::string log_dir = ::testing::TempDir() + "haptree_run_processes_smoke";
-  const std::string cmd = std::string(HAPTREE_RUN) + " --processes --duration-s 2 --scene protein_like --n 32 " +
+  const std::string cmd = std::string(HAPTREE_RUN) + " --processes --duration-s 2 --scene protein_like --n 32 --viewer-port 0 " +
                           "--log-dir " + log_dir + " 2>&1";
   FILE* p = ::popen(cmd.c_str(), "r");
   ASSERT_NE(p, nullptr);

@@ -1,0 +1,217 @@
+"""Browser test of the viewer (CTest label `browser`): a real launcher, Debian's chromium headless over CDP.
+
+  viewer_browser_test.py HAPTREE_RUN OUT_DIR [--processes]
+
+Starts `haptree_run --scene bacteriorhodopsin ... --users 1 --viewer-users 2` (user 0 scripted, user 1
+browser only), opens two tabs (two users), and checks:
+  * the page loads from the launcher, frames arrive and document.body.dataset.frames advances;
+  * a drag sent with Input.dispatchMouseEvent on an atom in tab B (user 1, idle until then) grabs that
+    atom's body and gives a nonzero feedback force within the clamp, in the session's own status lines
+    (coupler counters) and in dataset.forceN; a screenshot is written while it pulls;
+  * a drag in tab A takes user 0 over from its scripted device (another body is grabbed);
+  * closing tab B while it pulls releases user 1: its force in the status lines goes back to exactly 0.
+Exit 0 on success; prints what failed otherwise."""
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import cdp  # noqa: E402
+
+MAX_FORCE_N = 3.0
+
+
+def free_port():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+class Launcher:
+    """haptree_run with its stdout parsed: status lines give per-user |f| (coupler counters)."""
+    LINE = re.compile(r"user (\d+): +([\d.]+) Hz, \|f\| ([\d.]+) N")
+
+    def __init__(self, exe, port, processes, log_path):
+        args = [exe, "--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200",
+                "--users", "1", "--viewer-users", "2", "--viewer-port", str(port), "--duration-s", "300"]
+        if processes:
+            args.append("--processes")
+        self.log = open(log_path, "w")
+        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines = []
+        self.force = {}          # user -> list of (time, |f|)
+        self.url_seen = threading.Event()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            self.log.write(line)
+            self.log.flush()
+            self.lines.append(line)
+            if line.startswith("viewer: open http://"):
+                self.url_seen.set()
+            if line.startswith("t "):
+                for m in self.LINE.finditer(line):
+                    self.force.setdefault(int(m.group(1)), []).append((time.time(), float(m.group(3))))
+
+    def forces_since(self, user, t0):
+        return [f for (t, f) in self.force.get(user, []) if t >= t0]
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            return self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return -9
+
+
+def wait_for(what, fn, timeout):
+    t_end = time.time() + timeout
+    while time.time() < t_end:
+        v = fn()
+        if v:
+            return v
+        time.sleep(0.25)
+    raise AssertionError(f"timed out ({timeout} s) waiting for {what}")
+
+
+def ca_atoms(url):
+    """Indices (file order = NGL's atom index) of the CA atoms in the viewer's /scene.pdb: always drawn."""
+    import urllib.request
+    with urllib.request.urlopen(url + "scene.pdb", timeout=30) as r:
+        lines = [l for l in r.read().decode().splitlines() if l.startswith(("ATOM", "HETATM"))]
+    return [i for i, l in enumerate(lines) if l[12:16].strip() == "CA"]
+
+
+def ds(page, key):
+    return page.eval(f"(document.body && document.body.dataset.{key}) || ''")
+
+
+def drag(page, atoms, dx, dy, steps=12):
+    """Presses on the first of `atoms` (display points) the page picks as an atom, moves by (dx, dy)
+    pixels and keeps the button down. Returns the atom pressed on, or None."""
+    for atom in atoms:
+        p = page.eval(f"haptreePointOnScreen({atom})")
+        x, y = p["x"], p["y"]
+        page.eval("document.body.dataset.pick = ''")
+        page.mouse("mouseMoved", x, y)
+        page.mouse("mousePressed", x, y, buttons=1, button="left")
+        pick = ds(page, "pick")
+        print(f"press on point {atom} at ({x:.0f}, {y:.0f}): page picked {pick!r}", flush=True)
+        if not pick.startswith("atom"):
+            page.mouse("mouseReleased", x, y, button="left")
+            continue
+        for k in range(1, steps + 1):
+            page.mouse("mouseMoved", x + dx * k / steps, y + dy * k / steps, buttons=1, button="left")
+            time.sleep(0.05)
+        return atom
+    return None
+
+
+def screenshot_when_pulling(page, path, tries=20):
+    """The session's watchdog may zero the force for a moment on a loaded machine: shoot when |f| > 0."""
+    for _ in range(tries):
+        if float(ds(page, "forceN") or 0) > 0:
+            break
+        time.sleep(0.5)
+    page.screenshot(path)
+
+
+def main():
+    exe, out_dir = sys.argv[1], sys.argv[2]
+    processes = "--processes" in sys.argv[3:]
+    os.makedirs(out_dir, exist_ok=True)
+    tag = "processes" if processes else "embedded"
+    port = free_port()
+    launcher = Launcher(exe, port, processes, os.path.join(out_dir, f"launcher_{tag}.log"))
+    browser = None
+    failures = []
+
+    def check(cond, what):
+        print(("ok   " if cond else "FAIL ") + what, flush=True)
+        if not cond:
+            failures.append(what)
+
+    try:
+        if not launcher.url_seen.wait(120):
+            raise AssertionError("the launcher printed no viewer URL:\n" + "".join(launcher.lines[-20:]))
+        url = f"http://127.0.0.1:{port}/"
+        browser = cdp.Browser()
+        a = browser.new_page(url)
+        wait_for("tab A ready", lambda: ds(a, "ready") == "1", 120)
+        b = browser.new_page(url)
+        wait_for("tab B ready", lambda: ds(b, "ready") == "1", 120)
+        check(ds(a, "user") == "0" and ds(b, "user") == "1", f"two tabs are two users (A {ds(a, 'user')}, B {ds(b, 'user')})")
+
+        # frames arrive and the counter advances (rate in headless SwiftShader, for the log)
+        f0, t0 = int(ds(b, "frames") or 0), time.time()
+        time.sleep(5)
+        f1, t1 = int(ds(b, "frames") or 0), time.time()
+        check(f1 > f0, f"frames advance in tab B ({f0} -> {f1})")
+        print(f"tab B rendered {(f1 - f0) / (t1 - t0):.1f} frames/s (headless chromium, SwiftShader)", flush=True)
+        before = launcher.forces_since(1, 0)
+        check(all(f == 0.0 for f in before), f"user 1 idle before the drag (|f| {before[-3:]})")
+
+        # drag in tab B on a backbone atom (a hidden tab renders nothing: bring it to the front)
+        b.call("Page.bringToFront")   # on a backbone atom in the middle of the chain
+        ca = ca_atoms(url)
+        mid = len(ca) // 2
+        t_drag = time.time()
+        check(drag(b, ca[mid:mid + 10], 150, -110) is not None, "tab B pressed on an atom")
+        grabbed = wait_for("tab B's grab to show", lambda: ds(b, "grab") == "1", 60)
+        check(bool(grabbed), "tab B's press grabbed an atom")
+        body = int(ds(b, "grabBody") or 0)
+        check(body >= 1, f"user 1 grabs body {body}")
+        wait_for("user 1 force in the status lines", lambda: any(f > 0 for f in launcher.forces_since(1, t_drag)), 60)
+        time.sleep(2.5)
+        fs = launcher.forces_since(1, t_drag)
+        check(any(f > 0 for f in fs), f"nonzero feedback force for user 1 in the session's status lines {fs}")
+        check(all(f <= MAX_FORCE_N + 1e-9 for f in fs), f"clamped to {MAX_FORCE_N} N {fs}")
+        fn = float(ds(b, "forceN") or 0)
+        check(0 < fn <= MAX_FORCE_N + 1e-9, f"dataset.forceN {fn} in (0, {MAX_FORCE_N}]")
+        shot = os.path.join(out_dir, f"viewer_pull_{tag}.png")
+        screenshot_when_pulling(b, shot)
+        check(os.path.getsize(shot) > 10000, f"screenshot {shot} written ({os.path.getsize(shot)} bytes)")
+
+        # tab A takes user 0 over from its script
+        a.call("Page.bringToFront")
+        time.sleep(2)
+        scripted_body = int(ds(a, "grabBody") or 0)
+        q = len(ca) // 4
+        check(drag(a, ca[q:q + 10], -70, 50) is not None, "tab A pressed on an atom")
+        wait_for("tab A's grab", lambda: ds(a, "grabBody") not in ("", "0", str(scripted_body)), 60)
+        check(ds(a, "grabBody") != str(scripted_body),
+              f"a page grab takes user 0 over (script body {scripted_body} -> page body {ds(a, 'grabBody')})")
+        a.mouse("mouseReleased", 0, 0, button="left")
+
+        # a closed tab (dropped WebSocket) releases its user at once
+        t_close = time.time()
+        browser.close_page(b)
+        wait_for("user 1 released", lambda: [f for f in launcher.forces_since(1, t_close + 1.5)][:1] == [0.0], 60)
+        after = launcher.forces_since(1, t_close + 1.5)
+        check(after and all(f == 0.0 for f in after), f"user 1's force is 0 after its tab closed {after}")
+    except Exception as e:  # a failed wait or CDP call: report it with the launcher's tail
+        failures.append(str(e))
+        print("FAIL", e, flush=True)
+    finally:
+        if browser:
+            browser.quit()
+        rc = launcher.stop()
+    check(rc == 0, f"launcher exit status {rc} after SIGINT")
+    if failures:
+        print("launcher tail:\n" + "".join(launcher.lines[-15:]))
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

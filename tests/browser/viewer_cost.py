@@ -1,0 +1,78 @@
+"""Cost of the viewer to the sim and the coupler, and the viewer's frame rate in headless chromium.
+
+  /usr/bin/python3 tests/browser/viewer_cost.py build/tools/haptree_run [SECONDS]
+
+Runs the bacteriorhodopsin session (README: --dt 0.0005 --position-scale 1 --stiffness 200) three times
+for SECONDS (default 20) each: no viewer; viewer with no tab; viewer with one headless chromium tab
+(SwiftShader). Prints a markdown table from the launcher's own summary lines (sim steps, mean sampled
+step, coupler iterations, device pose-to-force latency p50/p99) and the tab's frames/s (dataset.frames)."""
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import cdp  # noqa: E402
+
+ARGS = ["--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200",
+        "--viewer-users", "1"]   # one user (scripted) in every run: the same couplers with and without viewer
+
+
+def free_port():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+def run(exe, seconds, mode):
+    port = free_port() if mode != "off" else 0
+    p = subprocess.Popen([exe, *ARGS, "--duration-s", str(seconds), "--viewer-port", str(port)],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    fps = None
+    if mode == "tab":
+        out = []
+        for line in p.stdout:   # wait for the URL
+            out.append(line)
+            if line.startswith("viewer: open"):
+                break
+        b = cdp.Browser()
+        try:
+            page = b.new_page(f"http://127.0.0.1:{port}/")
+            t_end = time.time() + 120
+            while time.time() < t_end and page.eval("(document.body && document.body.dataset.ready) || ''") != "1":
+                time.sleep(0.5)
+            time.sleep(2)
+            f0, t0 = int(page.eval("document.body.dataset.frames")), time.time()
+            time.sleep(min(10, seconds / 2))
+            f1, t1 = int(page.eval("document.body.dataset.frames")), time.time()
+            fps = (f1 - f0) / (t1 - t0)
+            rest = p.communicate()[0]
+        finally:
+            b.quit()
+        text = "".join(out) + rest
+    else:
+        text = p.communicate()[0]
+    m = re.search(r"summary: (\d+) sim steps .*mean sampled step ([\d.]+) ms", text)
+    u = re.search(r"user 0: body \d+, (\d+) coupler iterations.*latency p50 ([\d.]+) us p99 ([\d.]+) us", text)
+    return {"mode": mode, "steps": int(m.group(1)), "step_ms": float(m.group(2)), "iters": int(u.group(1)),
+            "p50": float(u.group(2)), "p99": float(u.group(3)), "fps": fps}
+
+
+def main():
+    exe = sys.argv[1]
+    seconds = float(sys.argv[2]) if len(sys.argv) > 2 else 20
+    rows = [run(exe, seconds, m) for m in ("off", "no_tab", "tab")]
+    print(f"| viewer | sim steps in {seconds:.0f} s | mean sampled step ms | coupler iterations (user 0) | "
+          "pose-to-force p50 us | p99 us | tab frames/s |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        fps = f"{r['fps']:.1f}" if r["fps"] is not None else "—"
+        print(f"| {r['mode']} | {r['steps']} | {r['step_ms']:.2f} | {r['iters']} | {r['p50']:.1f} | {r['p99']:.1f} | {fps} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,159 @@
+// Viewer: the page's messages parsed without trusting them, and the HTTP side (page, scene, 404s).
+#include <gtest/gtest.h>
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <cmath>
+#include <random>
+#include <string>
+#include <thread>
+
+#include "haptree/bus/bus.hpp"
+#include "haptree/bus/channels.hpp"
+#include "haptree/lcmt_scene_state.hpp"
+#include "sim_server/sim_server.hpp"
+#include "viewer/viewer.hpp"
+
+namespace haptree {
+namespace {
+
+ClientCommand parse(const std::string& s) { return parse_client_message(s.data(), s.size()); }
+
+TEST(ViewerParse, AcceptsTheThreeCommands) {
+  ClientCommand c = parse(R"({"t":"down","i":12,"p":[1.5,-2,3e1]})");
+  EXPECT_EQ(c.kind, ClientCommand::Kind::kDown);
+  EXPECT_EQ(c.atom, 12);
+  EXPECT_EQ(c.p, Vec3(1.5, -2, 30));
+  c = parse(R"({"t":"move","p":[0,0,1]})");
+  EXPECT_EQ(c.kind, ClientCommand::Kind::kMove);
+  EXPECT_EQ(c.p, Vec3(0, 0, 1));
+  EXPECT_EQ(parse(R"({"t":"up"})").kind, ClientCommand::Kind::kUp);
+}
+
+TEST(ViewerParse, RefusesNonFiniteMalformedAndAbsurdInput) {
+  for (const char* s : {R"({"t":"move","p":[NaN,0,0]})", R"({"t":"move","p":[1e400,0,0]})",
+                        R"({"t":"move","p":[1e7,0,0]})", R"({"t":"move","p":[0,0]})", R"({"t":"move","p":["0",0,0]})",
+                        R"({"t":"move"})", R"({"t":"down","p":[0,0,0]})", R"({"t":"down","i":-1,"p":[0,0,0]})",
+                        R"({"t":"down","i":1.5,"p":[0,0,0]})", R"({"t":"down","i":4294967296,"p":[0,0,0]})",
+                        R"({"t":"jump"})", R"({"t":3})", R"([1,2,3])", "", "{", "\xff\xfe", "null"})
+    EXPECT_EQ(parse(s).kind, ClientCommand::Kind::kInvalid) << s;
+  EXPECT_EQ(parse_client_message(nullptr, 10).kind, ClientCommand::Kind::kInvalid);
+  const std::string big = R"({"t":"up","pad":")" + std::string(5000, 'x') + "\"}";
+  EXPECT_EQ(parse(big).kind, ClientCommand::Kind::kInvalid);   // > 4 KB: refused unread
+  std::mt19937 rng(12);
+  for (int k = 0; k < 2000; ++k) {   // random bytes: never a command with a non-finite point, never a throw
+    std::string s(static_cast<size_t>(rng() % 64), '\0');
+    for (auto& ch : s) ch = static_cast<char>(rng());
+    const ClientCommand c = parse(s);
+    EXPECT_TRUE(c.p.allFinite());
+  }
+}
+
+std::string http_get(int port, const std::string& path) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_port = htons(static_cast<uint16_t>(port));
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
+    ::close(fd);
+    return "";
+  }
+  const std::string req = "GET " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n";
+  (void)!::write(fd, req.data(), req.size());
+  std::string out;
+  char buf[65536];
+  for (ssize_t n; (n = ::read(fd, buf, sizeof buf)) > 0;) out.append(buf, static_cast<size_t>(n));
+  ::close(fd);
+  return out;
+}
+
+TEST(Viewer, ServesThePageTheSceneAndNothingElse) {
+  bus::Bus bus("memq://");
+  ViewerOptions o;
+  o.port = 0;   // any free port
+  o.scene = "chain";
+  o.n = 5;
+  Viewer v(bus, o);
+  ASSERT_GT(v.port(), 0);
+  EXPECT_EQ(v.url(), "http://127.0.0.1:" + std::to_string(v.port()) + "/");
+  std::atomic<bool> stop{false};
+  std::thread t([&] { v.run(stop); });
+  const std::string page = http_get(v.port(), "/");
+  EXPECT_NE(page.find("200 OK"), std::string::npos);
+  EXPECT_NE(page.find("vendor/ngl.js"), std::string::npos);
+  const std::string pdb = http_get(v.port(), "/scene.pdb");
+  // chain(5): the ground + 5 bodies as points, 5 joints as CONECT records
+  size_t atoms = 0, conect = 0;
+  for (size_t p = 0; (p = pdb.find("\nHETATM", p)) != std::string::npos; ++p) ++atoms;
+  for (size_t p = 0; (p = pdb.find("\nCONECT", p)) != std::string::npos; ++p) ++conect;
+  EXPECT_EQ(atoms, 6u);
+  EXPECT_EQ(conect, 5u);
+  for (const char* bad : {"/../../etc/passwd", "/vendor/../viewer.cpp", "/nothing", "/index.html/.."})
+    EXPECT_NE(http_get(v.port(), bad).find("404"), std::string::npos) << bad;
+  stop = true;
+  t.join();
+}
+
+TEST(Viewer, BusyPortIsAClearError) {
+  bus::Bus bus("memq://");
+  ViewerOptions o;
+  o.port = 0;
+  o.scene = "chain";
+  o.n = 3;
+  Viewer a(bus, o);
+  o.port = a.port();
+  try {
+    Viewer b(bus, o);
+    FAIL() << "a second viewer on port " << o.port << " must not start";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find(std::to_string(o.port)), std::string::npos) << e.what();
+  }
+}
+
+// A scene too large for one datagram comes as chunks of <= 1000 bodies, each < 60 KB, that cover every
+// body once; the active flags agree with the step's active DOF count (chain: one DOF per joint).
+TEST(SceneState, LargeSceneIsSplitIntoDatagramSizedChunksWithActiveFlags) {
+  bus::Bus bus("memq://");
+  SimServerOptions o;
+  o.scene = "chain";
+  o.n = 2500;
+  o.steps = 3;
+  o.budget_dofs = 48;
+  SimServer server(bus, o);
+  std::vector<lcmt_scene_state> got;
+  bus.subscribe<lcmt_scene_state>(bus::channel::scene_state(), [&](const lcmt_scene_state& m, const std::string&) {
+    got.push_back(m);
+  });
+  std::atomic<bool> stop{false};
+  server.run(stop);
+  while (bus.handle_timeout(0) > 0) {
+  }
+  ASSERT_GE(got.size(), 3u);   // the first display period: one state in 3 chunks
+  const int64_t v = got[0].version;
+  std::vector<int> seen(2501, 0);
+  int active = 0;
+  for (const auto& m : got) {
+    if (m.version != v) continue;
+    EXPECT_EQ(m.total_bodies, 2501);
+    EXPECT_LE(m.nbodies, 1000);
+    EXPECT_LT(m.getEncodedSize(), 60000);
+    ASSERT_EQ(static_cast<int>(m.body_active.size()), m.nbodies);
+    for (int i = 0; i < m.nbodies; ++i) {
+      ++seen[static_cast<size_t>(m.first_body + i)];
+      active += m.body_active[static_cast<size_t>(i)];
+    }
+    EXPECT_EQ(m.active_dofs, got[0].active_dofs);
+  }
+  for (int k = 0; k < 2501; ++k) EXPECT_EQ(seen[static_cast<size_t>(k)], 1) << "body " << k;
+  EXPECT_EQ(active, got[0].active_dofs);
+  EXPECT_GT(active, 0);
+  EXPECT_EQ(seen.size(), 2501u);
+}
+
+}  // namespace
+}  // namespace haptree

@@ -1,0 +1,704 @@
+#include "viewer/viewer.hpp"
+
+#define ASIO_STANDALONE
+#define _WEBSOCKETPP_CPP11_STL_
+#include <nlohmann/json.hpp>
+#include <spdlog/spdlog.h>
+#include <websocketpp/config/asio_no_tls.hpp>
+#include <websocketpp/server.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <sstream>
+#include <stdexcept>
+#include <unistd.h>
+#include <vector>
+
+#include "haptree/bus/channels.hpp"
+#include "haptree/bus/wire.hpp"
+#include "haptree/dca.hpp"
+#include "haptree/io/urdf.hpp"
+#include "haptree/lcmt_device_state.hpp"
+#include "haptree/lcmt_feedback.hpp"
+#include "haptree/lcmt_pointer.hpp"
+#include "haptree/lcmt_process_stats.hpp"
+#include "haptree/lcmt_scene_state.hpp"
+#include "haptree/lcmt_user_force.hpp"
+#include "haptree/molecule/scene.hpp"
+#include "haptree/scenes.hpp"
+
+#ifndef HAPTREE_VIEWER_WEB_DIR
+#define HAPTREE_VIEWER_WEB_DIR ""
+#endif
+
+namespace haptree {
+
+using json = nlohmann::json;
+using WsServer = websocketpp::server<websocketpp::config::asio>;
+using Hdl = websocketpp::connection_hdl;
+using Clock = std::chrono::steady_clock;
+
+ClientCommand parse_client_message(const char* data, size_t size) noexcept {
+  ClientCommand c;
+  if (data == nullptr || size == 0 || size > 4096) return c;
+  try {
+    const json j = json::parse(data, data + size, nullptr, /*allow_exceptions=*/false);
+    if (!j.is_object() || !j.contains("t") || !j["t"].is_string()) return c;
+    const std::string t = j["t"].get<std::string>();
+    auto read_p = [&](Vec3& p) {
+      if (!j.contains("p") || !j["p"].is_array() || j["p"].size() != 3) return false;
+      for (int i = 0; i < 3; ++i) {
+        if (!j["p"][i].is_number()) return false;
+        p[i] = j["p"][i].get<double>();
+      }
+      return p.allFinite() && p.cwiseAbs().maxCoeff() < 1e6;
+    };
+    if (t == "down") {
+      if (!j.contains("i") || !j["i"].is_number_integer() || !read_p(c.p)) return c;
+      const int64_t i = j["i"].get<int64_t>();
+      if (i < 0 || i > (1 << 30)) return c;
+      c.atom = static_cast<int>(i);
+      c.kind = ClientCommand::Kind::kDown;
+    } else if (t == "move") {
+      if (read_p(c.p)) c.kind = ClientCommand::Kind::kMove;
+    } else if (t == "up") {
+      c.kind = ClientCommand::Kind::kUp;
+    }
+  } catch (...) {
+    c = ClientCommand{};
+  }
+  return c;
+}
+
+namespace {
+
+bool is_procedural(const std::string& s) {
+  return s == "chain" || s == "binary_tree" || s == "random_tree" || s == "star" || s == "protein_like";
+}
+
+std::string read_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::runtime_error("viewer: cannot read " + path);
+  std::ostringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+std::string find_web_dir(const std::string& given) {
+  std::vector<std::string> tried;
+  auto ok = [&](const std::string& d) {
+    tried.push_back(d);
+    return !d.empty() && std::ifstream(d + "/index.html").good();
+  };
+  if (!given.empty()) {
+    if (ok(given)) return given;
+  } else {
+    if (const char* e = std::getenv("HAPTREE_VIEWER_WEB_DIR"); e && ok(e)) return e;
+    char exe[4096];
+    const ssize_t n = readlink("/proc/self/exe", exe, sizeof(exe) - 1);
+    if (n > 0) {
+      std::string dir(exe, static_cast<size_t>(n));
+      dir = dir.substr(0, dir.find_last_of('/'));
+      for (const std::string& d : {dir + "/web", dir + "/../share/haptree/viewer/web"})
+        if (ok(d)) return d;
+    }
+    if (ok(HAPTREE_VIEWER_WEB_DIR)) return HAPTREE_VIEWER_WEB_DIR;
+  }
+  std::string list;
+  for (const auto& t : tried) list += (list.empty() ? "" : ", ") + t;
+  throw std::runtime_error("viewer: no web page (index.html) in " + list + "; give --web-dir");
+}
+
+struct UserSlot {
+  // from the bus (under Impl::mutex)
+  bool uf_active = false;
+  int uf_body = 0;
+  Vec3 uf_point = Vec3::Zero();
+  bool have_device = false;
+  Vec3 device_m = Vec3::Zero();
+  int buttons = 0, device_grab_body = 0, device_grab_seq = 0;
+  bool have_feedback = false;
+  Vec3 force_n = Vec3::Zero();
+  int flags = 0;
+  bool have_mapping = false;
+  double position_scale = 1, force_scale = 1, max_force_n = 0;
+  Vec3 offset = Vec3::Zero();
+  double rate_hz = 0, p99_us = 0, snapshot_age_ms = -1;
+  int64_t watchdog_events = 0, clamp_events = 0;
+  // handler-thread state: next time a high-rate channel is decoded (steady clock, s)
+  double next_feedback_s = 0, next_device_s = 0, next_user_force_s = 0;
+  // frame-thread state: the grab's material point in the body frame
+  int track_body = 0;
+  Vec3 track_key = Vec3::Constant(std::nan("")), track_local = Vec3::Zero();
+};
+
+struct Client {
+  int64_t id = 0;
+  int user = -1;            // -1: spectator (no free user)
+  bool down = false;
+  int body = 0;
+  Vec3 target_scene = Vec3::Zero();
+  bool have_target = false;
+  int64_t mask_sent = -1;   // active-mask version this client has
+};
+
+}  // namespace
+
+struct Viewer::Impl {
+  bus::Bus& bus;
+  ViewerOptions opt;
+  std::shared_ptr<const Model> model;
+  std::unique_ptr<mol::MolecularScene> mol;
+  // display points: atoms (molecules) or bodies (procedural, URDF); point i sits on body point_body[i]
+  std::vector<int> point_body;
+  std::vector<Vec3> point_local;
+  double disp_scale = 10;        // display unit (Å) per scene unit
+  Vec3 disp_center = Vec3::Zero();
+  std::string pdb, index_html, viewer_js, ngl_js, ngl_license, scene_json;
+  // bus slots
+  std::mutex mutex;
+  std::vector<Vec3> r;
+  std::vector<Quat> q;
+  std::vector<char> active;
+  int64_t scene_utime = 0;
+  int64_t mask_version = 0, scene_version = -1, scene_msgs = 0, wrong_size = 0;
+  double sim_time = 0, step_ms = 0, neglected = 0, sim_rate = 0, sim_resets = 0;
+  int active_dofs = 0;
+  std::vector<UserSlot> users;
+  // server thread
+  WsServer srv;
+  std::unique_ptr<asio::steady_timer> timer;
+  std::map<Hdl, Client, std::owner_less<Hdl>> clients;
+  int64_t next_client = 1, pointer_seq = 0;
+  std::vector<float> frame_buf;
+  std::vector<Vec3> x_scene;
+  std::atomic<int64_t> frames_sent{0}, frames_dropped{0}, pointer_msgs{0};
+  std::atomic<int> nclients{0};
+  int bound_port = 0;
+  Clock::time_point next_keepalive = Clock::now(), next_stats = Clock::now() + std::chrono::seconds(1);
+  int64_t frames_at_stats = 0, seq_stats = 0, frame_seq = 0;
+
+  Impl(bus::Bus& b, const ViewerOptions& o) : bus(b), opt(o) {}
+
+  // Handler thread: true at most once per 4 ms per channel (250 Hz, above any display rate).
+  static bool due(double& next_s) {
+    const double now = std::chrono::duration<double>(Clock::now().time_since_epoch()).count();
+    if (now < next_s) return false;
+    next_s = now + 0.004;
+    return true;
+  }
+
+  void load_scene();
+  void subscribe();
+  void start_server();
+  Vec3 to_disp(const Vec3& x) const { return (x - disp_center) * disp_scale; }
+  Vec3 from_disp(const Vec3& p) const { return p / disp_scale + disp_center; }
+  void on_http(Hdl h);
+  void on_open(Hdl h);
+  void on_close(Hdl h);
+  void on_message(Hdl h, WsServer::message_ptr msg);
+  void publish_pointer(const Client& c, bool button);
+  void tick();
+  void schedule();
+};
+
+void Viewer::Impl::load_scene() {
+  if (!opt.urdf.empty()) {
+    model = io::load_urdf(opt.urdf, {});
+  } else if (is_procedural(opt.scene)) {
+    SceneOptions so;
+    so.n = opt.n;
+    if (opt.scene == "random_tree") so.seed = 1;   // as sim_server
+    model = make_scene(opt.scene, so);
+  } else {
+    mol::SceneOptions mo;
+    mo.with_force_field = false;   // only the torsion model: where each atom sits on its body
+    mol = std::make_unique<mol::MolecularScene>(mol::load_molecular_scene(opt.scene, mo));
+    model = mol->model;
+  }
+  Data d(*model);
+  State s(*model);
+  forward_kinematics(*model, d, s.q);
+  const int nb = model->nbodies;
+  if (mol) {
+    const int na = mol->natoms();
+    point_body = mol->torsion.atom_model_body;
+    point_local = mol->torsion.atom_local;
+    disp_scale = 10;   // nm -> Å
+    std::vector<Vec3> x;
+    mol->atom_positions(d, x);
+    char tmpl[] = "/tmp/haptree_viewer_XXXXXX";
+    const int fd = mkstemp(tmpl);
+    if (fd < 0) throw std::runtime_error("viewer: mkstemp failed");
+    close(fd);
+    mol::write_pdb(tmpl, mol->structure, x);
+    pdb = read_file(tmpl);
+    std::remove(tmpl);
+    (void)na;
+  } else {
+    // one point per body origin (body 0 = the ground), bonds parent -> child
+    point_body.resize(nb);
+    point_local.assign(nb, Vec3::Zero());
+    Vec3 c = Vec3::Zero();
+    for (int k = 0; k < nb; ++k) point_body[k] = k, c += d.r[k];
+    c /= nb;
+    double ext = 0;
+    for (int k = 0; k < nb; ++k) ext = std::max(ext, (d.r[k] - c).norm());
+    disp_center = c;
+    disp_scale = ext > 0 ? 40.0 / ext : 1.0;   // the scene spans ~80 Å: NGL's default camera and PDB columns
+    std::string out;
+    char line[128];
+    for (int k = 0; k < nb; ++k) {
+      const Vec3 p = to_disp(d.r[k]);
+      std::snprintf(line, sizeof line, "HETATM%5d  B%-2d BOD A%4d    %8.3f%8.3f%8.3f  1.00  0.00           C\n",
+                    (k + 1) % 100000, 0, (k + 1) % 10000, p.x(), p.y(), p.z());
+      out += line;
+    }
+    for (int k = 1; k < nb; ++k) {
+      std::snprintf(line, sizeof line, "CONECT%5d%5d\n", (model->parent[k] + 1) % 100000, (k + 1) % 100000);
+      out += line;
+    }
+    out += "END\n";
+    pdb = out;
+  }
+  json sj;
+  sj["kind"] = mol ? "molecule" : "bodies";
+  sj["scene"] = opt.urdf.empty() ? opt.scene : opt.urdf;
+  sj["points"] = static_cast<int>(point_body.size());
+  sj["bodies"] = nb - 1;
+  sj["dof"] = model->nv;
+  sj["users"] = opt.users;
+  sj["disp_per_scene_unit"] = disp_scale;
+  sj["scene_unit"] = mol ? "nm" : "m";
+  sj["point_body"] = point_body;
+  scene_json = sj.dump();
+  r.assign(nb, Vec3::Zero());
+  q.assign(nb, Quat::Identity());
+  for (int k = 0; k < nb; ++k) r[k] = d.r[k], q[k] = Quat(d.R[k]);
+  active.assign(nb, 0);
+  users.assign(static_cast<size_t>(opt.users), UserSlot{});
+  x_scene.resize(point_body.size());
+  frame_buf.resize(4 + 3 * point_body.size());
+}
+
+void Viewer::Impl::subscribe() {
+  const std::string& sfx = opt.channel_suffix;
+  bus.subscribe<lcmt_scene_state>(bus::channel::scene_state(sfx), [this](const lcmt_scene_state& m, const std::string&) {
+    std::lock_guard<std::mutex> lock(mutex);
+    if (m.total_bodies != model->nbodies || m.first_body < 0 || m.first_body + m.nbodies > m.total_bodies) {
+      if (wrong_size++ == 0)
+        spdlog::warn("viewer: scene state with {} bodies, but the viewer's scene has {} (started with another "
+                     "--scene/--n?): ignored", m.total_bodies, model->nbodies);
+      return;
+    }
+    bool mask_changed = false;
+    for (int i = 0; i < m.nbodies; ++i) {
+      const int k = m.first_body + i;
+      const auto& p = m.body_position[i];
+      const auto& o = m.body_orientation[i];
+      const Vec3 x(p[0], p[1], p[2]);
+      Quat qk(o[0], o[1], o[2], o[3]);
+      if (!x.allFinite() || !qk.coeffs().allFinite() || qk.norm() < 0.5) continue;
+      r[k] = x;
+      q[k] = qk.normalized();
+      const char a = m.body_active[i] ? 1 : 0;
+      if (active[k] != a) active[k] = a, mask_changed = true;
+    }
+    if (mask_changed) ++mask_version;
+    scene_version = m.version;
+    scene_utime = m.utime;
+    sim_time = m.sim_time;
+    step_ms = m.step_ms;
+    neglected = m.neglected_metric;
+    active_dofs = m.active_dofs;
+    ++scene_msgs;
+  });
+  for (int u = 0; u < opt.users; ++u) {
+    bus.subscribe_raw(bus::channel::user_force(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+      if (!due(users[u].next_user_force_s)) return;
+      thread_local lcmt_user_force m;
+      if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
+      std::lock_guard<std::mutex> lock(mutex);
+      UserSlot& s = users[u];
+      s.uf_active = m.active && m.grab_body >= 1 && m.grab_body < model->nbodies;
+      s.uf_body = s.uf_active ? m.grab_body : 0;
+      s.uf_point = Vec3(m.grab_point[0], m.grab_point[1], m.grab_point[2]);
+      if (!s.uf_point.allFinite()) s.uf_active = false;
+    });
+    bus.subscribe_raw(bus::channel::device_state(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+      if (!due(users[u].next_device_s)) return;
+      thread_local lcmt_device_state m;
+      if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
+      const Vec3 x(m.position_m[0], m.position_m[1], m.position_m[2]);
+      if (!x.allFinite()) return;
+      std::lock_guard<std::mutex> lock(mutex);
+      users[u].have_device = true;
+      users[u].device_m = x;
+      users[u].buttons = m.buttons;
+      users[u].device_grab_body = m.grab_body;
+      users[u].device_grab_seq = m.grab_seq;
+    });
+    bus.subscribe_raw(bus::channel::feedback(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+      if (!due(users[u].next_feedback_s)) return;
+      thread_local lcmt_feedback m;
+      if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
+      const Vec3 f(m.force_n[0], m.force_n[1], m.force_n[2]);
+      std::lock_guard<std::mutex> lock(mutex);
+      users[u].have_feedback = true;
+      users[u].force_n = f.allFinite() ? f : Vec3::Zero();
+      users[u].flags = m.flags;
+    });
+    bus.subscribe<lcmt_process_stats>(bus::channel::stats("coupler_" + std::to_string(u), sfx),
+                                      [this, u](const lcmt_process_stats& m, const std::string&) {
+      std::lock_guard<std::mutex> lock(mutex);
+      UserSlot& s = users[u];
+      s.rate_hz = m.loop_rate_hz;
+      s.p99_us = m.latency_p99_us;
+      s.snapshot_age_ms = m.snapshot_age_ms;
+      s.watchdog_events = m.watchdog_events;
+      s.clamp_events = m.clamp_events;
+      std::map<std::string, double> ex;
+      for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i) ex[m.extra_names[i]] = m.extra_values[i];
+      if (ex.count("position_scale") && ex.count("offset_x") && ex.count("offset_y") && ex.count("offset_z")) {
+        const Vec3 off(ex["offset_x"], ex["offset_y"], ex["offset_z"]);
+        const double ps = ex["position_scale"];
+        if (off.allFinite() && std::isfinite(ps) && ps > 0) {
+          s.have_mapping = true;
+          s.position_scale = ps;
+          s.offset = off;
+          s.force_scale = ex.count("force_scale") ? ex["force_scale"] : 1.0;
+          s.max_force_n = ex.count("max_force_n") ? ex["max_force_n"] : 0.0;
+        }
+      }
+    });
+  }
+  bus.subscribe<lcmt_process_stats>(bus::channel::stats("sim_server", sfx), [this](const lcmt_process_stats& m, const std::string&) {
+    std::lock_guard<std::mutex> lock(mutex);
+    sim_rate = m.loop_rate_hz;
+    for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i)
+      if (m.extra_names[i] == "resets") sim_resets = m.extra_values[i];
+  });
+}
+
+void Viewer::Impl::start_server() {
+  const std::string dir = find_web_dir(opt.web_dir);
+  index_html = read_file(dir + "/index.html");
+  viewer_js = read_file(dir + "/viewer.js");
+  ngl_js = read_file(dir + "/vendor/ngl.js");
+  srv.clear_access_channels(websocketpp::log::alevel::all);
+  srv.clear_error_channels(websocketpp::log::elevel::all);
+  srv.init_asio();
+  srv.set_reuse_addr(true);
+  srv.set_http_handler([this](Hdl h) { on_http(h); });
+  srv.set_open_handler([this](Hdl h) { on_open(h); });
+  srv.set_close_handler([this](Hdl h) { on_close(h); });
+  srv.set_fail_handler([](Hdl) {});
+  srv.set_message_handler([this](Hdl h, WsServer::message_ptr m) { on_message(h, m); });
+  asio::error_code aec;
+  const asio::ip::address addr = asio::ip::make_address(opt.bind, aec);
+  if (aec) throw std::runtime_error("viewer: --bind '" + opt.bind + "' is not an IP address");
+  websocketpp::lib::error_code ec;
+  srv.listen(asio::ip::tcp::endpoint(addr, static_cast<unsigned short>(opt.port)), ec);
+  if (ec)
+    throw std::runtime_error("viewer: cannot listen on " + opt.bind + ":" + std::to_string(opt.port) + ": " +
+                             ec.message() + (opt.port ? " (another viewer running? pick another port)" : ""));
+  srv.start_accept(ec);
+  if (ec) throw std::runtime_error("viewer: accept failed: " + ec.message());
+  bound_port = srv.get_local_endpoint(aec).port();
+  timer = std::make_unique<asio::steady_timer>(srv.get_io_service());
+  spdlog::info("viewer: {} ({} display points, web files from {})", "http://" + opt.bind + ":" + std::to_string(bound_port) + "/",
+               point_body.size(), dir);
+}
+
+void Viewer::Impl::on_http(Hdl h) {
+  auto con = srv.get_con_from_hdl(h);
+  std::string res = con->get_resource();
+  res = res.substr(0, res.find('?'));
+  const std::string* body = nullptr;
+  std::string type;
+  if (res == "/" || res == "/index.html") body = &index_html, type = "text/html; charset=utf-8";
+  else if (res == "/viewer.js") body = &viewer_js, type = "text/javascript; charset=utf-8";
+  else if (res == "/vendor/ngl.js") body = &ngl_js, type = "text/javascript; charset=utf-8";
+  else if (res == "/scene.pdb") body = &pdb, type = "chemical/x-pdb";
+  else if (res == "/scene.json") body = &scene_json, type = "application/json";
+  if (!body) {
+    con->set_status(websocketpp::http::status_code::not_found);
+    con->set_body("not found\n");
+    return;
+  }
+  con->set_status(websocketpp::http::status_code::ok);
+  con->append_header("Content-Type", type);
+  con->append_header("Cache-Control", "no-store");
+  con->set_body(*body);
+}
+
+void Viewer::Impl::on_open(Hdl h) {
+  Client c;
+  c.id = next_client++;
+  std::vector<bool> taken(static_cast<size_t>(opt.users), false);
+  for (const auto& kv : clients)
+    if (kv.second.user >= 0) taken[static_cast<size_t>(kv.second.user)] = true;
+  for (int u = 0; u < opt.users; ++u)
+    if (!taken[static_cast<size_t>(u)]) {
+      c.user = u;
+      break;
+    }
+  clients[h] = c;
+  nclients = static_cast<int>(clients.size());
+  json hello = json::parse(scene_json);
+  hello["t"] = "hello";
+  hello["user"] = c.user;
+  hello["client"] = c.id;
+  websocketpp::lib::error_code ec;
+  srv.send(h, hello.dump(), websocketpp::frame::opcode::text, ec);
+  spdlog::info("viewer: client {} connected as {}", c.id, c.user >= 0 ? "user " + std::to_string(c.user) : "spectator");
+}
+
+void Viewer::Impl::on_close(Hdl h) {
+  auto it = clients.find(h);
+  if (it == clients.end()) return;
+  if (it->second.user >= 0) publish_pointer(it->second, false);   // a dropped socket releases at once
+  spdlog::info("viewer: client {} left", it->second.id);
+  clients.erase(it);
+  nclients = static_cast<int>(clients.size());
+}
+
+// Scene point -> device metres with the user's coupler mapping; nothing non-finite leaves.
+void Viewer::Impl::publish_pointer(const Client& c, bool button) {
+  if (c.user < 0) return;
+  lcmt_pointer m{};
+  bus::stamp(m);
+  m.seq = ++pointer_seq;
+  m.user_id = c.user;
+  m.client_id = c.id;
+  Vec3 x_m = Vec3::Zero();
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    const UserSlot& s = users[static_cast<size_t>(c.user)];
+    if (c.have_target && s.have_mapping) x_m = (c.target_scene - s.offset) / s.position_scale;
+    else if (s.have_device) x_m = s.device_m;
+  }
+  if (!x_m.allFinite()) return;
+  for (int i = 0; i < 3; ++i) m.position_m[i] = x_m[i];
+  m.buttons = button ? 1 : 0;
+  m.grab_body = button ? c.body : 0;
+  bus.publish(bus::channel::pointer(c.user, opt.channel_suffix), m);
+  pointer_msgs.fetch_add(1, std::memory_order_relaxed);
+}
+
+void Viewer::Impl::on_message(Hdl h, WsServer::message_ptr msg) {
+  auto it = clients.find(h);
+  if (it == clients.end()) return;
+  Client& c = it->second;
+  const std::string& pl = msg->get_payload();
+  const ClientCommand cmd = parse_client_message(pl.data(), pl.size());
+  if (c.user < 0) return;
+  bool mapped;
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    mapped = users[static_cast<size_t>(c.user)].have_mapping;
+  }
+  switch (cmd.kind) {
+    case ClientCommand::Kind::kDown: {
+      // A press grabs the picked atom's body at the atom itself; the ground, an unknown point or a user
+      // whose coupler has not told its mapping yet grabs nothing.
+      if (cmd.atom >= static_cast<int>(point_body.size())) return;
+      const int b = point_body[static_cast<size_t>(cmd.atom)];
+      if (!mapped || b < 1) {
+        spdlog::info("viewer: client {} (user {}) pressed on point {}: {}", c.id, c.user, cmd.atom,
+                     b < 1 ? "the ground, nothing to grab" : "the coupler has not sent its mapping yet");
+        return;
+      }
+      spdlog::info("viewer: client {} (user {}) grabs body {} at point {}", c.id, c.user, b, cmd.atom);
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        c.target_scene = r[b] + q[b] * point_local[static_cast<size_t>(cmd.atom)];
+      }
+      c.body = b;
+      c.down = true;
+      c.have_target = true;
+      publish_pointer(c, true);
+      break;
+    }
+    case ClientCommand::Kind::kMove:
+      if (!c.down) return;
+      c.target_scene = from_disp(cmd.p);
+      publish_pointer(c, true);
+      break;
+    case ClientCommand::Kind::kUp:
+      if (!c.down) return;
+      c.down = false;
+      publish_pointer(c, false);
+      break;
+    case ClientCommand::Kind::kInvalid:
+      break;
+  }
+}
+
+void Viewer::Impl::tick() {
+  const auto now = Clock::now();
+  if (now >= next_keepalive) {   // the browser device releases if the pointer goes quiet
+    for (auto& kv : clients)
+      if (kv.second.user >= 0 && kv.second.have_target) publish_pointer(kv.second, kv.second.down);
+    next_keepalive = now + std::chrono::milliseconds(50);
+  }
+  if (now >= next_stats) {
+    lcmt_process_stats s{};
+    bus::stamp(s);
+    s.seq = ++seq_stats;
+    s.process_name = "viewer";
+    s.loop_rate_hz = static_cast<double>(frames_sent.load() - frames_at_stats);
+    frames_at_stats = frames_sent.load();
+    s.snapshot_age_ms = -1;
+    s.messages_out = pointer_msgs.load();
+    s.extra_names = {"clients", "frames_dropped"};
+    s.extra_values = {static_cast<double>(nclients.load()), static_cast<double>(frames_dropped.load())};
+    s.n_extra = 2;
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      s.messages_in = scene_msgs;
+    }
+    bus.publish(bus::channel::stats("viewer", opt.channel_suffix), s);
+    next_stats += std::chrono::seconds(1);
+  }
+  if (clients.empty()) return;
+  // Build the frame from the slots (copy out under the lock, compute outside it).
+  json f;
+  std::string mask;
+  int64_t mv;
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    for (size_t i = 0; i < point_body.size(); ++i) {
+      const int b = point_body[i];
+      x_scene[i] = r[b] + q[b] * point_local[i];
+    }
+    mv = mask_version;
+    mask.resize(active.size());
+    for (size_t k = 0; k < active.size(); ++k) mask[k] = active[k] ? '1' : '0';
+    f["t"] = "frame";
+    f["version"] = scene_version;
+    f["scene_age_ms"] = scene_utime > 0 ? 1e-3 * static_cast<double>(bus::now_utime() - scene_utime) : -1.0;
+    f["sim_time"] = sim_time;
+    f["step_ms"] = step_ms;
+    f["active_dofs"] = active_dofs;
+    f["dof"] = model->nv;
+    f["sim_rate"] = sim_rate;
+    f["resets"] = sim_resets;
+    json us = json::array();
+    for (int u = 0; u < opt.users; ++u) {
+      UserSlot& s = users[static_cast<size_t>(u)];
+      json j;
+      j["id"] = u;
+      j["rate_hz"] = s.rate_hz;
+      j["p99_us"] = s.p99_us;
+      j["age_ms"] = s.snapshot_age_ms;
+      j["watchdog"] = (s.flags & lcmt_feedback::FLAG_WATCHDOG) != 0;
+      j["clamped"] = (s.flags & lcmt_feedback::FLAG_CLAMPED) != 0;
+      j["watchdog_events"] = s.watchdog_events;
+      j["clamp_events"] = s.clamp_events;
+      j["max_force_n"] = s.max_force_n;
+      j["f"] = {s.force_n.x(), s.force_n.y(), s.force_n.z()};
+      j["fn"] = s.force_n.norm();
+      j["buttons"] = s.buttons;
+      j["device_body"] = s.device_grab_body;   // > 0: the page drives this user's device
+      j["device_grab_seq"] = s.device_grab_seq;
+      if (s.have_device && s.have_mapping) {
+        const Vec3 p = to_disp(s.position_scale * s.device_m + s.offset);
+        j["proxy"] = {p.x(), p.y(), p.z()};
+      }
+      if (s.uf_active) {
+        // The grab point is a material point of the body: fixed in its frame from the grab on.
+        if (s.uf_body != s.track_body || s.uf_point != s.track_key) {
+          s.track_body = s.uf_body;
+          s.track_key = s.uf_point;
+          s.track_local = q[s.uf_body].conjugate() * (s.uf_point - r[s.uf_body]);
+        }
+        const Vec3 g = to_disp(r[s.uf_body] + q[s.uf_body] * s.track_local);
+        j["body"] = s.uf_body;
+        j["grab"] = {g.x(), g.y(), g.z()};
+      } else {
+        s.track_body = 0;
+      }
+      us.push_back(j);
+    }
+    f["users"] = us;
+  }
+  frame_buf[0] = static_cast<float>(++frame_seq);
+  frame_buf[1] = static_cast<float>(point_body.size());
+  frame_buf[2] = 0;
+  frame_buf[3] = 0;
+  for (size_t i = 0; i < x_scene.size(); ++i) {
+    const Vec3 p = to_disp(x_scene[i]);
+    for (int a = 0; a < 3; ++a) frame_buf[4 + 3 * i + static_cast<size_t>(a)] = static_cast<float>(p[a]);
+  }
+  const size_t bytes = frame_buf.size() * sizeof(float);
+  for (auto& kv : clients) {
+    auto con = srv.get_con_from_hdl(kv.first);
+    if (!con || con->get_state() != websocketpp::session::state::open) continue;
+    if (con->get_buffered_amount() > opt.max_buffered_bytes) {   // slow tab: skip, do not queue
+      frames_dropped.fetch_add(1, std::memory_order_relaxed);
+      continue;
+    }
+    json fj = f;
+    fj["you"] = kv.second.user;
+    if (kv.second.mask_sent != mv) {   // the active region, when it changed (each reselection)
+      fj["active"] = mask;
+      kv.second.mask_sent = mv;
+    }
+    websocketpp::lib::error_code ec;
+    srv.send(kv.first, fj.dump(), websocketpp::frame::opcode::text, ec);
+    if (!ec) srv.send(kv.first, frame_buf.data(), bytes, websocketpp::frame::opcode::binary, ec);
+    if (!ec) frames_sent.fetch_add(1, std::memory_order_relaxed);
+  }
+}
+
+void Viewer::Impl::schedule() {
+  timer->expires_after(std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / opt.max_fps)));
+  timer->async_wait([this](const asio::error_code& ec) {
+    if (ec) return;
+    tick();
+    schedule();
+  });
+}
+
+Viewer::Viewer(bus::Bus& bus, const ViewerOptions& options) : impl_(std::make_unique<Impl>(bus, options)) {
+  if (!(options.max_fps > 0 && options.max_fps <= 240)) throw std::runtime_error("viewer: --max-fps must be in (0, 240]");
+  if (options.users < 1 || options.users > 8) throw std::runtime_error("viewer: --users must be in [1, 8]");
+  if (options.port < 0 || options.port > 65535) throw std::runtime_error("viewer: --port must be in [0, 65535]");
+  impl_->load_scene();
+  impl_->start_server();
+  impl_->subscribe();
+}
+
+Viewer::~Viewer() = default;
+
+int Viewer::run(const std::atomic<bool>& stop) {
+  Impl& m = *impl_;
+  m.schedule();
+  auto& io = m.srv.get_io_service();
+  while (!stop.load(std::memory_order_relaxed)) io.run_for(std::chrono::milliseconds(100));
+  // Release every tab's grab, close the sockets, let the closes go out.
+  for (auto& kv : m.clients) m.publish_pointer(kv.second, false);
+  websocketpp::lib::error_code ec;
+  m.srv.stop_listening(ec);
+  for (auto& kv : m.clients) m.srv.close(kv.first, websocketpp::close::status::going_away, "session over", ec);
+  m.timer->cancel();
+  io.run_for(std::chrono::milliseconds(300));
+  m.srv.stop();
+  return 0;
+}
+
+int Viewer::port() const { return impl_->bound_port; }
+std::string Viewer::url() const { return "http://" + impl_->opt.bind + ":" + std::to_string(impl_->bound_port) + "/"; }
+int64_t Viewer::frames_sent() const { return impl_->frames_sent.load(); }
+int64_t Viewer::frames_dropped() const { return impl_->frames_dropped.load(); }
+int Viewer::clients() const { return impl_->nclients.load(); }
+int64_t Viewer::pointer_messages() const { return impl_->pointer_msgs.load(); }
+
+}  // namespace haptree

@@ -1,0 +1,66 @@
+#pragma once
+// Viewer: the session seen in a web browser (issue 12), the fourth thin process (STYLE.md §7.1).
+// Subscribes to the session's channels (scene state, user forces, device states, feedback, stats),
+// loads the scene once to know where every atom (or body) sits on its body, and serves on one port
+// (127.0.0.1 unless told otherwise) the page (viewer/web), the scene as PDB (/scene.pdb) and one
+// WebSocket (/ws): per frame (<= max_fps) a JSON text with the overlays and the HUD, then the atom
+// positions as Float32. A client whose socket still holds more than max_buffered_bytes gets no new
+// frame (dropped, counted): a slow tab never slows the bus handler or the other tabs.
+// The page is also a device: each tab takes a free user id; its pointer comes back as JSON and goes
+// out as lcmt_pointer (device metres, the coupler's mapping inverted) to that user's `browser` device.
+// The bus handler only copies messages into slots (one small mutex); frames are built on the server
+// thread.
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "haptree/bus/bus.hpp"
+#include "haptree/spatial.hpp"
+
+namespace haptree {
+
+struct ViewerOptions {
+  std::string bind = "127.0.0.1";
+  int port = 8080;                 // 0: any free port (see Viewer::port())
+  std::string web_dir;             // "" = $HAPTREE_VIEWER_WEB_DIR, else the source tree's viewer/web
+  // The scene, as given to sim_server (the viewer loads it to place atoms; it simulates nothing).
+  std::string scene = "protein_like";
+  int n = 64;
+  std::string urdf;
+  int users = 2;                   // user ids 0..users-1 a tab may take (one coupler + browser device each)
+  double max_fps = 30;
+  size_t max_buffered_bytes = 1 << 20;
+  std::string channel_suffix;
+};
+
+// One message from a page, parsed without trusting it (fuzz target: any bytes). Never throws.
+struct ClientCommand {
+  enum class Kind { kInvalid, kDown, kMove, kUp };
+  Kind kind = Kind::kInvalid;
+  int atom = -1;                    // kDown: display point picked (atom, or body for body scenes)
+  Vec3 p = Vec3::Zero();            // kDown/kMove: pointer target, display coordinates (finite)
+};
+ClientCommand parse_client_message(const char* data, size_t size) noexcept;
+
+class Viewer {
+ public:
+  // Loads the scene, subscribes, binds the port. Throws std::runtime_error with the reason (port in
+  // use, web files missing, unknown scene).
+  Viewer(bus::Bus& bus, const ViewerOptions& options);
+  ~Viewer();
+  // Serves until stop is true. Returns 0.
+  int run(const std::atomic<bool>& stop);
+  int port() const;
+  std::string url() const;
+  int64_t frames_sent() const;
+  int64_t frames_dropped() const;
+  int clients() const;
+  int64_t pointer_messages() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace haptree

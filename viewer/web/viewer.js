@@ -1,0 +1,244 @@
+// haptree viewer page: NGL scene from /scene.pdb, live frames over the WebSocket (JSON overlays + Float32
+// positions), the mouse as this tab's haptic device. Test hooks: document.body.dataset.frames (frames
+// rendered), .forceN (last |f| shown for this tab's user, N), .ready, .user, .grab.
+/* global NGL */
+const USER_COLOURS = ['#d62728', '#1f77b4', '#2ca02c', '#9467bd', '#e377c2', '#17becf', '#bcbd22', '#8c564b'];
+const ACTIVE = 0xff8c00, RIGID = 0x8fa3b8;
+const ARROW_PER_N = 8.0;   // display units (Å) per newton at the device (shown in the HUD)
+
+const body = document.body;
+window.addEventListener('error', (e) => { body.dataset.error = String(e.message || e); });
+const stage = new NGL.Stage('stage', { backgroundColor: 'white', tooltip: false, quality: 'low', sampleLevel: 0 });
+window.addEventListener('resize', () => stage.handleResize());
+
+let hello = null, comp = null, ballRepr = null, overlay = null;
+let frame = null, pendingPositions = null, framesRendered = 0;
+let activeOfPoint = null, maskDirty = false, lastMaskUpdate = 0;
+let grab = null;
+let tPos = 0, tOv = 0;                      // {i, p: NGL.Vector3, x, y}
+const fpsTimes = [];
+
+const scheme = NGL.ColormakerRegistry.addScheme(function () {
+  this.atomColor = (atom) => (activeOfPoint && activeOfPoint[atom.index] ? ACTIVE : RIGID);
+}, 'haptree-active');
+
+const ws = new WebSocket(`ws://${location.host}/ws`);
+ws.binaryType = 'arraybuffer';
+ws.onclose = () => { setStatus('disconnected (session over?)'); };
+ws.onmessage = (ev) => {
+  if (typeof ev.data === 'string') {
+    let m;
+    try { m = JSON.parse(ev.data); } catch (e) { return; }
+    if (m.t === 'hello') onHello(m);
+    else if (m.t === 'frame') frame = m;
+  } else if (frame) {
+    pendingPositions = { pos: new Float32Array(ev.data, 16), frame };
+  }
+};
+
+function setStatus(s) { document.getElementById('status').textContent = s; }
+
+async function onHello(m) {
+  hello = m;
+  body.dataset.user = String(m.user);
+  setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}` : `spectator (all ${m.users} users taken) — ${m.scene}`);
+  comp = await stage.loadFile('/scene.pdb', { ext: 'pdb', defaultRepresentation: false });
+  if (m.kind === 'molecule') {
+    comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
+    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, sele: 'not hydrogen', aspectRatio: 1.5, radiusScale: 0.6 });
+  } else {
+    // bodies: a sphere per body origin, a stick per joint; size from the typical joint spacing
+    const s = comp.structure, a = s.getAtomProxy(), b = s.getAtomProxy(), d = [];
+    s.eachBond((bond) => { a.index = bond.atomIndex1; b.index = bond.atomIndex2; d.push(a.distanceTo(b)); });
+    d.sort((x, y) => x - y);
+    const spacing = d.length ? d[Math.floor(d.length / 2)] : 1;
+    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, radiusType: 'size', radiusSize: 0.3 * spacing, aspectRatio: 2 });
+  }
+  activeOfPoint = new Uint8Array(m.points);
+  makeOverlay(m.users);
+  comp.autoView();
+  body.dataset.ready = '1';
+}
+
+// Overlays: per user the grabbed point, the device proxy point, the spring and the force arrow. The
+// buffers are made once and only their attributes change per frame (no new shaders, no new component);
+// hidden primitives get radius 0.
+let spheres = null, springs = null, arrows = null;
+function makeOverlay(n) {
+  const z = (k) => new Float32Array(k);
+  const col = z(3 * n);
+  for (let u = 0; u < n; ++u) {
+    const c = new NGL.Color(USER_COLOURS[u % USER_COLOURS.length]);
+    col.set([c.r, c.g, c.b], 3 * u);
+  }
+  const col2 = z(6 * n);
+  for (let u = 0; u < n; ++u) { col2.set(col.subarray(3 * u, 3 * u + 3), 6 * u); col2.set(col.subarray(3 * u, 3 * u + 3).map((x) => 0.55 + 0.45 * x), 6 * u + 3); }
+  spheres = new NGL.SphereBuffer({ position: z(6 * n), color: col2, radius: z(2 * n) });
+  springs = new NGL.CylinderBuffer({ position1: z(3 * n), position2: z(3 * n), color: col, color2: col, radius: z(n) });
+  // the force arrow in a darker shade: it lies along the spring (f ∝ stretch) but is wider
+  arrows = new NGL.ArrowBuffer({ position1: z(3 * n), position2: z(3 * n), color: col.map((x) => 0.55 * x), radius: z(n) });
+  const shape = new NGL.Shape('overlay');
+  shape.addBuffer(spheres); shape.addBuffer(springs); shape.addBuffer(arrows);
+  overlay = stage.addComponentFromObject(shape);
+  overlay.addRepresentation('buffer');
+}
+function drawOverlay(f) {
+  const n = hello.users;
+  const sp = new Float32Array(6 * n), sr = new Float32Array(2 * n);
+  const a1 = new Float32Array(3 * n), a2 = new Float32Array(3 * n), ar = new Float32Array(n), cr = new Float32Array(n);
+  for (const u of f.users) {
+    if (u.id >= n) continue;
+    if (u.grab) { sp.set(u.grab, 6 * u.id); sr[2 * u.id] = 1.8; }
+    if (u.proxy && (u.grab || u.id === f.you)) {
+      sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 1.2;
+      if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.2; }
+    }
+  }
+  springs.setAttributes({ position1: a1.slice(), position2: a2.slice(), radius: cr });
+  a1.fill(0); a2.fill(0);
+  for (const u of f.users) {
+    if (u.id >= n || !u.proxy || !u.grab || !(u.fn > 1e-4)) continue;
+    const L = u.fn * ARROW_PER_N;
+    a1.set(u.proxy, 3 * u.id);
+    a2.set(u.proxy.map((x, k) => x + (u.f[k] / u.fn) * L), 3 * u.id);
+    ar[u.id] = 1.0;
+  }
+  spheres.setAttributes({ position: sp, radius: sr });
+  arrows.setAttributes({ position1: a1, position2: a2, radius: ar });
+}
+
+function hud(f, fps) {
+  const rows = [
+    ['sim step', `${f.step_ms.toFixed(2)} ms (${Math.round(f.sim_rate)} steps/s)`],
+    ['active / total DOF', `${f.active_dofs} / ${f.dof}`],
+    ['sim time', `${f.sim_time.toFixed(3)} · scene state ${f.scene_age_ms.toFixed(0)} ms old`],
+    ['frames/s', `${fps.toFixed(1)} · arrow ${ARROW_PER_N} Å per N`],
+  ];
+  let html = rows.map(([k, v]) => `<tr><td class="k">${k}</td><td colspan="2">${v}</td></tr>`).join('');
+  for (const u of f.users) {
+    const col = USER_COLOURS[u.id % USER_COLOURS.length];
+    const frac = u.max_force_n > 0 ? Math.min(1, u.fn / u.max_force_n) : 0;
+    const wd = u.watchdog ? '<b style="color:#c00">WATCHDOG</b>' : 'ok';
+    html += `<tr><td class="k" style="color:${col}">user ${u.id}${u.id === f.you ? ' (you)' : ''}</td>` +
+      `<td>|f| ${u.fn.toFixed(3)} N${u.clamped ? ' (clamped)' : ''}</td>` +
+      `<td><span class="bar"><i style="width:${(100 * frac).toFixed(0)}%;background:${col}"></i></span></td></tr>` +
+      `<tr><td></td><td colspan="2">coupler ${(u.rate_hz / 1000).toFixed(1)} kHz · snapshot age ${u.age_ms.toFixed(1)} ms · ${wd}` +
+      `${u.body ? ' · body ' + u.body : ''}</td></tr>`;
+  }
+  document.getElementById('hudtab').innerHTML = html;
+}
+
+function render(now) {
+  requestAnimationFrame(render);
+  if (!comp || !pendingPositions) return;
+  const now0 = performance.now();
+  const { pos, frame: f } = pendingPositions;
+  pendingPositions = null;
+  if (pos.length === 3 * hello.points) {
+    comp.structure.updatePosition(pos, false);
+    comp.updateRepresentations({ position: true });
+  }
+  if (typeof f.active === 'string') {   // per body, sent when the active region changed
+    const pb = hello.point_body;
+    for (let i = 0; i < pb.length; ++i) activeOfPoint[i] = f.active.charCodeAt(pb[i]) === 49 ? 1 : 0;
+    maskDirty = true;
+  }
+  if (maskDirty && now - lastMaskUpdate > 250) {   // recolouring costs a buffer update: at most 4 per second
+    ballRepr.update({ color: true });
+    maskDirty = false;
+    lastMaskUpdate = now;
+  }
+  const t1 = performance.now();
+  drawOverlay(f);
+  const t2 = performance.now();
+  tPos += t1 - now0; tOv += t2 - t1;
+  body.dataset.msPos = (tPos / (framesRendered + 1)).toFixed(2);
+  body.dataset.msOverlay = (tOv / (framesRendered + 1)).toFixed(2);
+  fpsTimes.push(now);
+  while (fpsTimes.length && now - fpsTimes[0] > 1000) fpsTimes.shift();
+  framesRendered += 1;
+  body.dataset.frames = String(framesRendered);
+  const me = f.users.find((u) => u.id === f.you);
+  body.dataset.forceN = me ? me.fn.toFixed(4) : '0';
+  body.dataset.grab = me && me.grab ? '1' : '0';
+  body.dataset.grabBody = me && me.body ? String(me.body) : '0';
+  body.dataset.clamped = me && me.clamped ? '1' : '0';
+  hud(f, fpsTimes.length);
+}
+requestAnimationFrame(render);
+
+// ---- the mouse as a device -------------------------------------------------------------------------
+function canvasXY(e) {
+  const r = stage.viewer.renderer.domElement.getBoundingClientRect();
+  return [e.clientX - r.left, r.height - (e.clientY - r.top), r];
+}
+// Rotation taking a vector in the camera's plane (x right, y up, z into the screen) to model coordinates,
+// as NGL pans an atom (TrackballControls._transformPanVector), and the canvas pixel size at the point.
+function panFrame(p) {
+  const v = stage.viewer;
+  const cam = new NGL.Matrix4().extractRotation(v.camera.matrixWorld).multiply(new NGL.Matrix4().makeRotationY(Math.PI));
+  const m = new NGL.Matrix4().extractRotation(comp.transform).premultiply(v.rotationGroup.matrix).invert().multiply(cam);
+  const pv = p.clone().add(v.translationGroup.position).applyMatrix4(v.rotationGroup.matrix);
+  return { m, scale: stage.viewerControls.getCanvasScaleFactor(pv.z) };
+}
+let sent = 0;
+function send(o) {
+  if (ws.readyState !== WebSocket.OPEN) return;
+  ws.send(JSON.stringify(o));
+  body.dataset.sent = String(++sent);
+}
+function finite(p) { return Number.isFinite(p.x) && Number.isFinite(p.y) && Number.isFinite(p.z); }
+
+window.addEventListener('mousedown', (e) => {
+  if (e.button !== 0 || !comp || !hello || hello.user < 0) return;
+  const [x, y, r] = canvasXY(e);
+  if (x < 0 || y < 0 || x > r.width || y > r.height) return;
+  const pp = stage.pickingControls.pick(x, y);
+  // an atom, or the nearer atom of a picked bond; anything else (empty space, an overlay): NGL rotates
+  const atom = pp ? (pp.atom || (pp.bond ? pp.closestBondAtom : undefined)) : undefined;
+  body.dataset.pick = atom ? `atom ${atom.index}` : pp ? pp.type : 'nothing';
+  if (!atom) return;
+  e.stopPropagation();
+  e.preventDefault();
+  const p = new NGL.Vector3(); atom.positionToVector3(p);
+  grab = { i: atom.index, p, x: e.clientX, y: e.clientY };
+  send({ t: 'down', i: grab.i, p: [p.x, p.y, p.z] });
+}, true);
+window.addEventListener('mousemove', (e) => {
+  if (!grab) return;
+  e.stopPropagation();
+  const { m, scale } = panFrame(grab.p);
+  const d = new NGL.Vector3((e.clientX - grab.x) * scale, -(e.clientY - grab.y) * scale, 0).applyMatrix4(m);
+  grab.x = e.clientX; grab.y = e.clientY;
+  const p = grab.p.clone().add(d);
+  if (!finite(p)) return;   // never forward a NaN pointer
+  grab.p = p;
+  send({ t: 'move', p: [p.x, p.y, p.z] });
+}, true);
+window.addEventListener('mouseup', (e) => {
+  if (!grab) return;
+  e.stopPropagation();
+  grab = null;
+  send({ t: 'up' });
+}, true);
+window.addEventListener('wheel', (e) => {
+  if (!grab) return;
+  e.stopPropagation();
+  e.preventDefault();
+  const { m, scale } = panFrame(grab.p);
+  const d = new NGL.Vector3(0, 0, e.deltaY * 0.25 * scale).applyMatrix4(m);
+  const p = grab.p.clone().add(d);
+  if (!finite(p)) return;
+  grab.p = p;
+  send({ t: 'move', p: [p.x, p.y, p.z] });
+}, { capture: true, passive: false });
+window.addEventListener('blur', () => { if (grab) { grab = null; send({ t: 'up' }); } });
+
+// For tests and scripts: canvas-relative client coordinates of display point i.
+window.haptreePointOnScreen = (i) => {
+  const a = comp.structure.getAtomProxy(i), p = new NGL.Vector3();
+  a.positionToVector3(p);
+  const c = stage.viewerControls.getPositionOnCanvas(p);
+  const r = stage.viewer.renderer.domElement.getBoundingClientRect();
+  return { x: r.left + c.x, y: r.top + (r.height - c.y) };
+};
