@@ -176,6 +176,7 @@ struct Viewer::Impl {
   std::unique_ptr<asio::steady_timer> timer;
   std::map<Hdl, Client, std::owner_less<Hdl>> clients;
   int64_t next_client = 1, pointer_seq = 0;
+  const int64_t instance_id = bus::new_instance_id();
   std::vector<float> frame_buf;
   std::vector<Vec3> x_scene;
   std::atomic<int64_t> frames_sent{0}, frames_dropped{0}, pointer_msgs{0};
@@ -473,7 +474,7 @@ void Viewer::Impl::on_close(Hdl h) {
 void Viewer::Impl::publish_pointer(const Client& c, bool button) {
   if (c.user < 0) return;
   lcmt_pointer m{};
-  bus::stamp(m);
+  bus::stamp(m, instance_id);
   m.seq = ++pointer_seq;
   m.user_id = c.user;
   m.client_id = c.id;
@@ -550,7 +551,7 @@ void Viewer::Impl::tick() {
   }
   if (now >= next_stats) {
     lcmt_process_stats s{};
-    bus::stamp(s);
+    bus::stamp(s, instance_id);
     s.seq = ++seq_stats;
     s.process_name = "viewer";
     s.loop_rate_hz = static_cast<double>(frames_sent.load() - frames_at_stats);

@@ -29,7 +29,7 @@ struct Rig {
   }
   void send(const Vec3& x, int buttons, int body, int id = 3) {
     lcmt_pointer m{};
-    bus::stamp(m);
+    bus::stamp(m, 1);
     m.seq = ++seq;
     m.user_id = id;
     for (int i = 0; i < 3; ++i) m.position_m[i] = x[i];
