@@ -140,6 +140,10 @@ struct ImdServer::Impl {
     const int one = 1;
     ::setsockopt(c, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
     ::setsockopt(c, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
+    // A small kernel send buffer (two frames): a slow receiver gets the newest frame, not seconds of
+    // queued old ones, and a stalled one is noticed within --send-timeout-s.
+    const int sndbuf = static_cast<int>(std::max<size_t>(65536, 2 * (48 + 24 * static_cast<size_t>(natoms))));
+    ::setsockopt(c, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
     fd = c;
     phase = Phase::kAwaitGo;
     accepted_at = send_progress_at = Clock::now();
@@ -378,9 +382,9 @@ struct ImdServer::Impl {
   void check_timeouts() {
     if (fd < 0) return;
     if (phase == Phase::kAwaitGo && seconds_since(accepted_at) > opt.go_timeout_s)
-      return drop("no IMD_GO within " + std::to_string(opt.go_timeout_s) + " s of the handshake", true);
+      return drop(fmt::format("no IMD_GO within {:g} s of the handshake", opt.go_timeout_s), true);
     if (pending() && seconds_since(send_progress_at) > opt.send_timeout_s)
-      drop("read nothing for " + std::to_string(opt.send_timeout_s) + " s", true);
+      drop(fmt::format("read nothing for {:g} s", opt.send_timeout_s), true);
   }
 };
 
