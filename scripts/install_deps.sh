@@ -13,6 +13,7 @@ PKGS=(
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
   tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
+  python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
 )
 missing=()
 for p in "${PKGS[@]}"; do

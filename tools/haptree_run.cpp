@@ -22,6 +22,7 @@
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/bus.hpp"
 #include "haptree/dca.hpp"
+#include "imd_bridge/imd_server.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
 
@@ -82,9 +83,30 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"shm", "udpm"}))->capture_default_str();
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
+  // ---- IMD (issue 16): --imd-port serves the session over IMD from inside the launcher; the IMD pull
+  // is one more user (id = --users), which sim_server listens to. ----
+  haptree::ImdServerOptions imd;
+  imd.port = 0;   // 0 here = off
+  app.add_option("--imd-port", imd.port,
+                 "serve the session over IMD on this TCP port (VMD: `mol new <pdb>`, `imd connect localhost PORT`); "
+                 "molecular scenes; 0 = off")->check(CLI::Range(0, 65535))->capture_default_str();
+  app.add_option("--imd-bind", imd.bind, "IMD listen address")->capture_default_str();
+  app.add_option("--imd-version", imd.version, "IMD version: 2 (VMD) or 3")->check(CLI::IsMember({2, 3}))
+      ->capture_default_str();
+  // ---- end IMD options ----
   CLI11_PARSE(app, argc, argv);
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   so.users = users;
+  if (imd.port > 0) {   // IMD: one more user for the IMD pull
+    if (po.enabled) {
+      std::fprintf(stderr, "haptree_run: --imd-port runs in the embedded launcher; with --processes start "
+                           "build/imd_bridge/imd_bridge beside sim_server (docs/imd.md)\n");
+      return 2;
+    }
+    so.users = users + 1;
+    imd.user_id = users;
+    imd.scene = so.scene;
+  }
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   if (po.enabled) {
@@ -146,10 +168,14 @@ int main(int argc, char** argv) {
     }
     spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s", so.scene,
                  model.nbodies - 1, model.nv, users, fmt::join(bodies, ","), duration_s);
+    // IMD: the ImdServer on the same bus, in its own thread (binds before the session starts).
+    std::unique_ptr<haptree::ImdServer> imd_server;
+    if (imd.port > 0) imd_server = std::make_unique<haptree::ImdServer>(bus, imd);
     haptree::bus::HandlerThread handler(bus, 5);
     std::atomic<bool> stop{false};
     std::vector<std::thread> threads;
     threads.emplace_back([&] { server.run(stop); });
+    if (imd_server) threads.emplace_back([&] { imd_server->run(stop); });
     for (auto& c : couplers) threads.emplace_back([&stop, p = c.get()] { p->run(stop); });
     for (auto& b : bridges) threads.emplace_back([&stop, p = b.get()] { p->run(stop); });
     const auto t0 = std::chrono::steady_clock::now();
