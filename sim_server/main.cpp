@@ -34,6 +34,16 @@ int main(int argc, char** argv) {
                  "healthy checkpoint at rest and is counted as a reset")->capture_default_str();
   app.add_option("--checkpoint-every", o.checkpoint_every, "steps between checkpoints of a healthy state")
       ->capture_default_str();
+  // ---- trajectory (issue 12) ----
+  app.add_option("--trajectory", o.trajectory,
+                 "record atom positions (molecules) or body origins to FILE: .dcd (CHARMM/NAMD binary) or .pdb "
+                 "(multi-model), in angstrom");
+  app.add_option("--trajectory-every-steps", o.trajectory_every_steps, "steps between trajectory frames")
+      ->check(CLI::Range(1, 100000000))->capture_default_str();
+  app.add_option("--trajectory-every-time", o.trajectory_every_time,
+                 "> 0: scene time between frames instead (ps for molecules, s otherwise)")
+      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  // ---- end trajectory ----
   CLI11_PARSE(app, argc, argv);
   if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;
