@@ -223,6 +223,39 @@ TEST(ImdProtocol, RejectsGarbageWithoutWaitingForIt) {
   EXPECT_EQ(imd::max_client_message_bytes(10), 8u + 160u);
 }
 
+// Random streams (a seeded smoke test; T's fuzz target runs the same pure function longer): the
+// parser never reads past the buffer (ASan would see it), never consumes more than it was given, and
+// every message it accepts is in range.
+TEST(ImdProtocol, RandomBytesAreParsedOrRefusedWithinBounds) {
+  std::mt19937 g(7);
+  imd::ClientMessage m;
+  int messages = 0, errors = 0;
+  for (int it = 0; it < 20000; ++it) {
+    std::vector<uint8_t> b(g() % 64);
+    for (auto& c : b) c = static_cast<uint8_t>(g());
+    if (b.size() >= 8 && it % 2 == 0) {   // half of them with a valid type, to reach the bodies
+      const int32_t t = static_cast<int32_t>(g() % 17), n = static_cast<int32_t>(g() % 5);
+      imd::write_be32(b.data(), t);
+      imd::write_be32(b.data() + 4, n);
+    }
+    const auto r = imd::parse_client_message(b.data(), b.size(), 4, m);
+    if (r.status == imd::ParseStatus::kMessage) {
+      ++messages;
+      ASSERT_LE(r.consumed, b.size());
+      if (m.type == imd::Type::kMdcomm) {
+        ASSERT_EQ(m.forces.size(), 3 * m.indices.size());
+        for (int32_t i : m.indices) ASSERT_TRUE(i >= 0 && i < 4);
+        for (float f : m.forces) ASSERT_TRUE(std::isfinite(f));
+      }
+    } else if (r.status == imd::ParseStatus::kError) {
+      ++errors;
+      ASSERT_FALSE(r.error.empty());
+    }
+  }
+  EXPECT_GT(messages, 1000);
+  EXPECT_GT(errors, 1000);
+}
+
 TEST(ImdProtocol, EngineHeadersAreBigEndianAndHandshakeIsNative) {
   std::vector<uint8_t> b;
   imd::append_handshake(b, 3);
@@ -545,37 +578,43 @@ struct Session {
   }
 };
 
-TEST(ImdSession, ForceOnAnAtomMovesItAlongTheForce) {
+// Pulls atom `a` with `force` (kJ/(mol Å), IMD v3) for 1 ps of session time; returns its displacement (Å).
+Vec3 pull_atom(const Vec3& force, int64_t* published = nullptr) {
   ImdServerOptions o;
   o.version = 3;
   Session s(o);
   Receiver r(s.imd->port());
-  ASSERT_EQ(r.handshake(), 3);
+  EXPECT_EQ(r.handshake(), 3);
   int32_t type, n;
   uint8_t flags[7];
-  ASSERT_TRUE(r.header(type, n) && r.read_exact(flags, 7));
-  ASSERT_TRUE(r.send_simple(3));
+  EXPECT_TRUE(r.header(type, n) && r.read_exact(flags, 7));
+  EXPECT_TRUE(r.send_simple(3));
   Frame f0, f;
-  ASSERT_TRUE(read_frame(r, f0, true));
+  if (!read_frame(r, f0, true)) return Vec3::Constant(NAN);
   const int natoms = static_cast<int>(f0.x.size() / 3);
   const int a = natoms - 3;   // near the free C-terminal end (the first segment root is welded)
-  const Vec3 dir = Vec3(1, 1, 0).normalized();
-  const float mag = 25.0f;    // kJ/(mol Å) = 250 kJ/(mol nm), under the default clamp
-  ASSERT_TRUE(r.send_forces({a}, {mag * float(dir.x()), mag * float(dir.y()), 0.f}));
-  // Pull for 1 ps of session time (2000 steps), reading every frame.
+  EXPECT_TRUE(r.send_forces({a}, {float(force.x()), float(force.y()), float(force.z())}));
   do {
-    ASSERT_TRUE(read_frame(r, f, true));
+    if (!read_frame(r, f, true)) return Vec3::Constant(NAN);
   } while (f.time < f0.time + 1.0);
-  const Vec3 x0(f0.x[3 * a], f0.x[3 * a + 1], f0.x[3 * a + 2]);
-  const Vec3 x1(f.x[3 * a], f.x[3 * a + 1], f.x[3 * a + 2]);
-  const Vec3 dx = x1 - x0;
-  const double along = dx.dot(dir);
-  const double across = (dx - along * dir).norm();
-  std::printf("pulled atom %d: moved %.3f A along the force, %.3f A across, in %.2f ps\n", a, along, across,
-              f.time - f0.time);
-  EXPECT_GT(along, 0.5) << "the atom moves along the pull";
-  EXPECT_GT(along, across) << "mostly along it";
-  EXPECT_GT(s.imd->counters().forces_published.load(), 0);
+  if (published) *published = s.imd->counters().forces_published.load();
+  return Vec3(f.x[3 * a] - f0.x[3 * a], f.x[3 * a + 1] - f0.x[3 * a + 1], f.x[3 * a + 2] - f0.x[3 * a + 2]);
+}
+
+TEST(ImdSession, ForceOnAnAtomMovesItAlongTheForce) {
+  // 25 kJ/(mol Å) = 250 kJ/(mol nm), under the default clamp. The unpulled atom drifts by itself
+  // (the force field relaxes the ideal helix: ~1.2 Å along this direction in 1 ps), so the test pulls
+  // both ways from the same start: the drift is common, the pull is not.
+  const Vec3 dir = Vec3(1, 1, 0).normalized();
+  int64_t published = 0;
+  const Vec3 plus = pull_atom(25.0 * dir, &published), minus = pull_atom(-25.0 * dir);
+  const double along_plus = plus.dot(dir), along_minus = minus.dot(dir);
+  std::printf("pulled atom: %+.3f A along +f, %+.3f A along -f (component on +f), in 1 ps\n", along_plus,
+              along_minus);
+  EXPECT_GT(along_plus, 3.0) << "moves along +f";
+  EXPECT_LT(along_minus, -3.0) << "moves along -f";
+  EXPECT_GT(along_plus - along_minus, 8.0);
+  EXPECT_GT(published, 0);
 }
 
 TEST(ImdSession, GarbageHugeTruncatedSilentAndStalledReceiversNeverStopTheSession) {
