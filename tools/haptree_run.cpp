@@ -100,7 +100,7 @@ int main(int argc, char** argv) {
   if (imd.port > 0) {   // IMD: one more user for the IMD pull
     if (po.enabled) {
       std::fprintf(stderr, "haptree_run: --imd-port runs in the embedded launcher; with --processes start "
-                           "build/imd_bridge/imd_bridge beside sim_server (docs/imd.md)\n");
+                           "build/imd_bridge/imd_bridge beside sim_server (README: VMD through IMD)\n");
       return 2;
     }
     so.users = users + 1;
