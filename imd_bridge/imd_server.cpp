@@ -74,7 +74,8 @@ struct ImdServer::Impl {
   std::vector<Vec3> body_r;
   std::vector<Quat> body_q;
   std::vector<Vec3> x, x_prev;
-  std::vector<float> fx, fv;
+  std::vector<float> fx, fv, ff;
+  std::vector<Vec3> atom_f;
   bool mismatch_logged = false;
 
   // The pull.
@@ -142,7 +143,7 @@ struct ImdServer::Impl {
     ::setsockopt(c, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
     // A small kernel send buffer (two frames): a slow receiver gets the newest frame, not seconds of
     // queued old ones, and a stalled one is noticed within --send-timeout-s.
-    const int sndbuf = static_cast<int>(std::max<size_t>(65536, 2 * (48 + 24 * static_cast<size_t>(natoms))));
+    const int sndbuf = static_cast<int>(std::max<size_t>(65536, 2 * (64 + 36 * static_cast<size_t>(natoms))));
     ::setsockopt(c, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
     fd = c;
     phase = Phase::kAwaitGo;
@@ -157,6 +158,7 @@ struct ImdServer::Impl {
     if (opt.version >= 3) {
       imd::SessionInfo si;
       si.velocities = opt.velocities;
+      si.forces = opt.forces;
       imd::append_session_info(out, si);
     }
     counters.clients.fetch_add(1);
@@ -373,6 +375,13 @@ struct ImdServer::Impl {
             fv[3 * a + i] = static_cast<float>(imd::kNmToAngstrom * (x[a][i] - x_prev[a][i]) / h);
       imd::append_vectors(out, imd::Type::kVelocities, fv.data(), natoms);
     }
+    if (opt.version >= 3 && opt.forces) {
+      scene.force_field->compute_atoms(x, atom_f);
+      ff.resize(3 * static_cast<size_t>(natoms));
+      for (int a = 0; a < natoms; ++a)   // kJ/(mol nm) -> kJ/(mol Å)
+        for (int i = 0; i < 3; ++i) ff[3 * a + i] = static_cast<float>(atom_f[a][i] / imd::kNmToAngstrom);
+      imd::append_vectors(out, imd::Type::kForces, ff.data(), natoms);
+    }
     send_progress_at = Clock::now();
     last_frame_version = version;
     counters.frames_sent.fetch_add(1);
@@ -402,7 +411,7 @@ ImdServer::ImdServer(bus::Bus& bus, const ImdServerOptions& options)
     throw std::invalid_argument("IMD serves molecular scenes (atoms); '" + o.scene +
                                 "' is not one (use a molecule name such as ala20, or a PDB path)");
   mol::SceneOptions so;
-  so.with_force_field = false;   // only the torsion model is needed to place atoms
+  so.with_force_field = o.version >= 3 && o.forces;   // else only the torsion model, to place atoms
   s.scene = mol::load_molecular_scene(o.scene, so);
   s.natoms = s.scene.natoms();
   s.force_to_scene = o.version >= 3 ? imd::kKjPerMolAngstromToKjPerMolNm : imd::kKcalPerMolAngstromToKjPerMolNm;

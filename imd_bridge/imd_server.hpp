@@ -33,6 +33,9 @@ struct ImdServerOptions {
   double go_timeout_s = 2;         // handshake -> IMD_GO (the spec asks 1 s of engines; we allow more)
   double send_timeout_s = 5;       // a receiver that reads nothing for this long is dropped
   bool velocities = true;          // v3: send velocities (finite difference of the last two frames)
+  // v3: send per-atom force-field forces, kJ/(mol Å), at the frame's positions (the scene's
+  // evaluator: every term between rigid bodies; terms inside one body do no work and are left out).
+  bool forces = true;
 };
 
 struct ImdCounters {

@@ -37,7 +37,12 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber)->capture_default_str();
   app.add_option("--send-timeout-s", o.send_timeout_s, "a receiver that reads nothing for this long is dropped")
       ->check(CLI::PositiveNumber)->capture_default_str();
+  bool no_forces = false, no_velocities = false;
+  app.add_flag("--no-forces", no_forces, "v3: do not send the per-atom force-field forces (saves the evaluation)");
+  app.add_flag("--no-velocities", no_velocities, "v3: do not send velocities");
   CLI11_PARSE(app, argc, argv);
+  o.forces = !no_forces;
+  o.velocities = !no_velocities;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& stop = haptree::bus::install_stop_signals();
   try {

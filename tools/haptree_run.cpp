@@ -175,9 +175,10 @@ int main(int argc, char** argv) {
     std::atomic<bool> stop{false};
     std::vector<std::thread> threads;
     threads.emplace_back([&] { server.run(stop); });
-    if (imd_server) threads.emplace_back([&] { imd_server->run(stop); });
     for (auto& c : couplers) threads.emplace_back([&stop, p = c.get()] { p->run(stop); });
     for (auto& b : bridges) threads.emplace_back([&stop, p = b.get()] { p->run(stop); });
+    std::thread imd_thread;   // IMD: its own thread, joined with the others
+    if (imd_server) imd_thread = std::thread([&] { imd_server->run(stop); });
     const auto t0 = std::chrono::steady_clock::now();
     double max_force = 0, max_rate = 0, sum_step_ms = 0;
     int lines = 0;
@@ -195,6 +196,11 @@ int main(int argc, char** argv) {
                             k.rate_hz.load(), k.force_n.load(), k.snapshot_age_ms.load());
       }
       (void)last_it;
+      if (imd_server) {   // IMD status
+        const auto& k = imd_server->counters();
+        line += fmt::format(" | imd :{} {}, {} frames", imd_server->port(),
+                            imd_server->client_connected() ? "receiver" : "no receiver", k.frames_sent.load());
+      }
       sum_step_ms += server.last_step_ms();
       ++lines;
       std::printf("%s\n", line.c_str());
@@ -203,6 +209,7 @@ int main(int argc, char** argv) {
     }
     stop = true;
     for (auto& th : threads) th.join();
+    if (imd_thread.joinable()) imd_thread.join();
     handler.stop();
     std::printf("summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
                 "%lld blow-up resets\n",
@@ -219,6 +226,13 @@ int main(int argc, char** argv) {
                   bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99));
     }
     std::printf("  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
+    if (imd_server) {   // IMD summary
+      const auto& k = imd_server->counters();
+      std::printf("  imd: %lld receiver(s), %lld dropped, %lld frames sent (%lld skipped), %lld MDCOMM packets\n",
+                  static_cast<long long>(k.clients.load()), static_cast<long long>(k.dropped.load()),
+                  static_cast<long long>(k.frames_sent.load()), static_cast<long long>(k.frames_skipped.load()),
+                  static_cast<long long>(k.mdcomm.load()));
+    }
     return 0;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

@@ -114,11 +114,12 @@ struct Frame {
   bool has_time = false;
   double dt = 0, time = 0;
   int64_t step = -1;
-  std::vector<float> x, v;
+  std::vector<float> x, v, f;   // Å, Å/ps, kJ/(mol Å)
 };
 
-// Reads packets until a coordinate packet (and, with velocities, the velocity packet after it).
-bool read_frame(Receiver& r, Frame& f, bool velocities, double timeout_s = 5) {
+// Reads one frame. v2: a coordinate packet. v3 (the server's default session info: time,
+// coordinates, velocities, forces): up to and including the force packet.
+bool read_frame(Receiver& r, Frame& f, bool v3, double timeout_s = 5) {
   f = Frame{};
   for (;;) {
     int32_t type, n;
@@ -131,12 +132,12 @@ bool read_frame(Receiver& r, Frame& f, bool velocities, double timeout_s = 5) {
       std::memcpy(&f.time, b + 8, 8);
       std::memcpy(&f.step, b + 16, 8);
       f.has_time = true;
-    } else if (type == 2 || type == 14) {
+    } else if (type == 2 || type == 14 || type == 15) {
       if (n < 0 || n > 1000000) return false;
-      auto& dst = type == 2 ? f.x : f.v;
+      auto& dst = type == 2 ? f.x : type == 14 ? f.v : f.f;
       dst.resize(3 * static_cast<size_t>(n));
       if (!r.read_exact(dst.data(), 12 * static_cast<size_t>(n))) return false;
-      if (type == 14 || !velocities) return true;
+      if ((type == 2 && !v3) || type == 15) return true;
     } else {
       return false;   // nothing else is announced
     }

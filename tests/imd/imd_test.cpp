@@ -251,7 +251,7 @@ TEST(ImdServer, HandshakeV3SessionInfoAndCoordinatesMatchTheSessionsAtoms) {
   ASSERT_EQ(n, 7);
   uint8_t flags[7];
   ASSERT_TRUE(r.read_exact(flags, 7));
-  const uint8_t want_flags[7] = {1, 0, 0, 1, 0, 1, 0};
+  const uint8_t want_flags[7] = {1, 0, 0, 1, 0, 1, 1};   // time, coordinates, velocities, forces
   EXPECT_EQ(std::memcmp(flags, want_flags, 7), 0);
   ASSERT_TRUE(r.send_simple(3));
   wait_connected(*fx.server);
@@ -285,6 +285,21 @@ TEST(ImdServer, HandshakeV3SessionInfoAndCoordinatesMatchTheSessionsAtoms) {
     for (int i = 0; i < 3; ++i)
       worst_v = std::max(worst_v, std::abs(fb.v[3 * a + i] - (xb[a][i] - xa[a][i]) / 0.01));
   EXPECT_LT(worst_v, 2e-3);
+  // Forces: the scene's force field at configuration b, kJ/(mol nm) / 10 = kJ/(mol Å), float32.
+  std::vector<Vec3> xb_nm(xb.size()), F;
+  for (size_t a = 0; a < xb.size(); ++a) xb_nm[a] = xb[a] / 10.0;
+  fx.scene.force_field->compute_atoms(xb_nm, F);
+  ASSERT_EQ(fb.f.size(), 3u * F.size());
+  double fmax = 0, worst_f = 0;
+  for (size_t a = 0; a < F.size(); ++a)
+    for (int i = 0; i < 3; ++i) {
+      fmax = std::max(fmax, std::abs(F[a][i]) / 10.0);
+      worst_f = std::max(worst_f, std::abs(fb.f[3 * a + i] - F[a][i] / 10.0));
+    }
+  EXPECT_GT(fmax, 1.0) << "a random conformation has nonzero forces";
+  // The server evaluates at its own positions (from the quaternions, ~1e-15 nm apart) and rounds to
+  // float32: relative 1e-6 of the largest force covers both.
+  EXPECT_LT(worst_f, 1e-6 * fmax + 1e-6) << "max |F| " << fmax;
 }
 
 TEST(ImdServer, RateChangePauseResumeAndDisconnect) {
