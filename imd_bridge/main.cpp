@@ -23,7 +23,7 @@ int main(int argc, char** argv) {
   app.add_option("--port", o.port, "TCP port (0: any free port, printed at start)")
       ->check(CLI::Range(0, 65535))->capture_default_str();
   app.add_option("--bind", o.bind, "listen address (IPv4; 0.0.0.0 = every interface)")->capture_default_str();
-  app.add_option("--imd-version", o.version, "IMD version announced: 2 (VMD) or 3 (IMDv3: time + velocities too)")
+  app.add_option("--imd-version", o.version, "IMD version announced: 2 (VMD) or 3 (IMDv3: time, velocities and forces too)")
       ->check(CLI::IsMember({2, 3}))->capture_default_str();
   app.add_option("--user-id", o.user_id, "user id of the IMD pull (HAPTREE_USER_FORCE_<id>)")
       ->check(CLI::Range(0, 1000))->capture_default_str();

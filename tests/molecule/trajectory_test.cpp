@@ -178,6 +178,24 @@ TEST(SimServerTrajectory, RecordsEveryNStepsFromTheFirst) {
   fs::remove(p);
 }
 
+// A trajectory that cannot be written (disk full) stops the recording, never the session.
+TEST(SimServerTrajectory, WriteErrorStopsTheRecordingNotTheSession) {
+  const std::string p = tmp("full.dcd");
+  fs::create_symlink("/dev/full", p);
+  bus::Bus bus("memq://");
+  SimServerOptions o;
+  o.scene = "ala20";
+  o.dt = 0.0005;
+  o.steps = 300;
+  o.trajectory = p;
+  o.trajectory_every_steps = 10;
+  SimServer s(bus, o);
+  std::atomic<bool> stop{false};
+  EXPECT_EQ(s.run(stop), 0);
+  EXPECT_EQ(s.steps_done(), 300);
+  fs::remove(p);
+}
+
 // An LCM log of scene states (as lcm-logger writes it) -> trajectory_from_log -> DCD: the atoms are
 // those of the scene's own kinematics for the logged poses.
 TEST(TrajectoryFromLog, MoleculeAtomsFromLoggedPoses) {
