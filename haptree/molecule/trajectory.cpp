@@ -51,9 +51,13 @@ DcdWriter::DcdWriter(const std::string& path, int natoms, double dt_ps, int step
   put_i32(h, 4);
   put_i32(h, natoms);
   put_i32(h, 4);
-  if (std::fwrite(h.data(), 1, h.size(), f_) != h.size()) throw std::runtime_error(path + ": write failed");
   buf_.resize(static_cast<size_t>(natoms) + 2);
-  std::fflush(f_);
+  if (std::fwrite(h.data(), 1, h.size(), f_) != h.size() || std::fflush(f_) != 0 || std::ferror(f_)) {
+    const std::string why = std::strerror(errno);
+    std::fclose(f_);
+    f_ = nullptr;
+    throw std::runtime_error(path + ": write failed: " + why);
+  }
 }
 
 DcdWriter::~DcdWriter() {
@@ -85,7 +89,8 @@ void DcdWriter::patch_counts() {
   std::fseek(f_, 20, SEEK_SET);    // ICNTRL[3]
   std::fwrite(&nstep, 4, 1, f_);
   std::fseek(f_, end, SEEK_SET);
-  if (std::fflush(f_) != 0) throw std::runtime_error(path_ + ": write failed: " + std::strerror(errno));
+  // fseek flushes too and may swallow the error it met: check the stream's error flag as well.
+  if (std::fflush(f_) != 0 || std::ferror(f_)) throw std::runtime_error(path_ + ": write failed: " + std::strerror(errno));
 }
 
 void DcdWriter::close() {

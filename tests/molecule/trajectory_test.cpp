@@ -4,7 +4,10 @@
 #include <gemmi/pdb.hpp>
 #include <lcm/lcm-cpp.hpp>
 
+#include <sys/resource.h>
 #include <unistd.h>
+
+#include <csignal>
 
 #include <atomic>
 #include <cmath>
@@ -178,22 +181,56 @@ TEST(SimServerTrajectory, RecordsEveryNStepsFromTheFirst) {
   fs::remove(p);
 }
 
-// A trajectory that cannot be written (disk full) stops the recording, never the session.
-TEST(SimServerTrajectory, WriteErrorStopsTheRecordingNotTheSession) {
-  const std::string p = tmp("full.dcd");
+TEST(Dcd, WriteErrorsAreReportedNamingTheFile) {
+  const std::string p = tmp("full_writer.dcd");
   fs::create_symlink("/dev/full", p);
+  try {
+    DcdWriter w(p, ala20().natoms(), 0.0005, 1);
+    w.write_frame(frame(9));
+    ADD_FAILURE() << "writing to a full disk succeeded";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find(p), std::string::npos) << e.what();
+  }
+  fs::remove(p);
+}
+
+// A trajectory that cannot be written at start-up is refused in words; one that fails mid-session
+// (here: the file-size limit, EFBIG) stops the recording, never the session.
+TEST(SimServerTrajectory, WriteErrorStopsTheRecordingNotTheSession) {
   bus::Bus bus("memq://");
   SimServerOptions o;
   o.scene = "ala20";
   o.dt = 0.0005;
   o.steps = 300;
-  o.trajectory = p;
-  o.trajectory_every_steps = 10;
-  SimServer s(bus, o);
-  std::atomic<bool> stop{false};
-  EXPECT_EQ(s.run(stop), 0);
-  EXPECT_EQ(s.steps_done(), 300);
-  fs::remove(p);
+  o.trajectory_every_steps = 10;   // 30 frames of 2.6 KB
+  o.trajectory = tmp("full.dcd");
+  fs::create_symlink("/dev/full", o.trajectory);
+  try {
+    SimServer s(bus, o);
+    ADD_FAILURE() << "a trajectory on a full disk was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find(o.trajectory), std::string::npos) << e.what();
+  }
+  fs::remove(o.trajectory);
+  o.trajectory = tmp("limited.dcd");
+  rlimit old{};
+  ::getrlimit(RLIMIT_FSIZE, &old);
+  auto old_handler = std::signal(SIGXFSZ, SIG_IGN);
+  rlimit lim = old;
+  lim.rlim_cur = 20000;   // bytes: the header and a few frames fit
+  ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &lim), 0);
+  int64_t steps = 0;
+  {
+    SimServer s(bus, o);
+    std::atomic<bool> stop{false};
+    s.run(stop);
+    steps = s.steps_done();
+  }
+  ::setrlimit(RLIMIT_FSIZE, &old);
+  std::signal(SIGXFSZ, old_handler);
+  EXPECT_EQ(steps, 300);
+  EXPECT_LE(fs::file_size(o.trajectory), 20000u);
+  fs::remove(o.trajectory);
 }
 
 // An LCM log of scene states (as lcm-logger writes it) -> trajectory_from_log -> DCD: the atoms are
