@@ -18,6 +18,7 @@ PKGS=(
   openjdk-17-jdk-headless liblcm-java           # haptree_lcmtypes.jar for lcm-spy (java/)
   libwebsocketpp-dev libasio-dev                # viewer: HTTP + WebSocket (standalone asio)
   chromium python3-websocket                    # viewer browser test: headless chromium over CDP
+  python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
 )
 missing=()
 for p in "${PKGS[@]}"; do

@@ -58,6 +58,16 @@ int main(int argc, char** argv) {
                  "per scene length): larger ones are clamped, non-finite ones zeroed, both counted. Default: "
                  "2 x the coupler's default max_force_n / force_scale (2 x 3 N / 0.5)")
       ->check(haptree::bus::positive(1e12))->capture_default_str();
+  // ---- trajectory (issue 12) ----
+  app.add_option("--trajectory", o.trajectory,
+                 "record atom positions (molecules) or body origins to FILE: .dcd (CHARMM/NAMD binary) or .pdb "
+                 "(multi-model), in angstrom");
+  app.add_option("--trajectory-every-steps", o.trajectory_every_steps, "steps between trajectory frames")
+      ->check(CLI::Range(1, 100000000))->capture_default_str();
+  app.add_option("--trajectory-every-time", o.trajectory_every_time,
+                 "> 0: scene time between frames instead (ps for molecules, s otherwise)")
+      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  // ---- end trajectory ----
   CLI11_PARSE(app, argc, argv);
   if (o.scene == "protein_like" && app.count("--n") > 0 && o.urdf.empty())
     spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", o.n);

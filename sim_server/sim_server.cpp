@@ -21,6 +21,7 @@
 #include "haptree/lcmt_scene_state.hpp"
 #include "haptree/molecule/scene.hpp"
 #include "haptree/safety.hpp"
+#include "haptree/molecule/trajectory.hpp"
 #include "haptree/scenes.hpp"
 
 namespace haptree {
@@ -148,6 +149,19 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
   }
   forward_kinematics(*model_, *data_, state_->q);
   checkpoint_ = std::make_unique<State>(*state_);
+  if (!opt_.trajectory.empty()) {   // trajectory: atoms of a molecule, else one pseudo-atom per body
+    mol::TrajectoryOptions to;
+    to.path = opt_.trajectory;
+    to.every_steps = opt_.trajectory_every_steps;
+    to.every_time = opt_.trajectory_every_time;
+    to.dt = opt_.dt;
+    trajectory_ = molecule_ ? std::make_unique<mol::TrajectoryRecorder>(to, &molecule_->scene.structure,
+                                                                        molecule_->scene.natoms())
+                            : std::make_unique<mol::TrajectoryRecorder>(to, nullptr, model_->nbodies - 1);
+    spdlog::info("sim_server: trajectory to {} every {}", to.path,
+                 to.every_time > 0 ? fmt::format("{:g} time units", to.every_time)
+                                   : fmt::format("{} steps", to.every_steps));
+  }
   spdlog::info("sim_server: scene '{}' with {} bodies, {} DOF, fingerprint {:016x}, dt {}",
                opt_.urdf.empty() ? opt_.scene : opt_.urdf, model_->nbodies - 1, model_->nv, model_->fingerprint,
                opt_.dt);
@@ -329,6 +343,23 @@ void SimServer::publish_snapshots() {
   }
 }
 
+void SimServer::record_trajectory() {
+  if (!trajectory_->due(version_, state_->t)) return;
+  update_all_body_poses(*model_, *data_, *ad_);
+  if (molecule_) {
+    molecule_->scene.atom_positions(*data_, trajectory_x_);
+  } else {
+    trajectory_x_.resize(static_cast<size_t>(model_->nbodies - 1));
+    for (int k = 1; k < model_->nbodies; ++k) trajectory_x_[k - 1] = data_->r[k];
+  }
+  try {
+    trajectory_->write(trajectory_x_, version_, state_->t);
+  } catch (const std::exception& e) {
+    spdlog::error("sim_server: trajectory stopped after {} frames: {}", trajectory_->frames(), e.what());
+    trajectory_.reset();
+  }
+}
+
 void SimServer::publish_scene_state(double step_ms) {
   const Model& m = *model_;
   const Data& d = *data_;
@@ -425,6 +456,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
     const auto a = Clock::now();
     step_once();
     if (!just_reset_) publish_snapshots();   // after a reset the coefficients are stale
+    if (trajectory_ && !just_reset_) record_trajectory();
     const auto b = Clock::now();
     const double ms = std::chrono::duration<double, std::milli>(b - a).count();
     step_ms_.store(ms, std::memory_order_relaxed);

@@ -21,6 +21,9 @@ namespace haptree {
 namespace molecule_fwd {
 struct Holder;
 }
+namespace mol {
+class TrajectoryRecorder;
+}
 
 struct SimServerOptions {
   std::string scene = "protein_like";  // procedural name, or molecule name / PDB path
@@ -55,6 +58,11 @@ struct SimServerOptions {
   // default follows from the coupler's defaults: it clamps f_u to 2 x max_force_n / force_scale =
   // 2 x 3 N / 0.5 N per unit = 12 scene force units; the launcher passes the value of its own options.
   double max_user_force = 12.0;
+  // ---- trajectory (issue 12): atoms (molecules) or body origins to a .dcd or .pdb file ----
+  std::string trajectory;              // "" = none
+  int trajectory_every_steps = 100;
+  double trajectory_every_time = 0;    // > 0: a frame every this much scene time instead
+  // ---- end trajectory ----
 };
 
 // Health counters of the server (relaxed atomics; the stats message carries them).
@@ -125,6 +133,11 @@ class SimServer {
   std::atomic<int64_t> resets_{0};
   bool just_reset_ = false;
   bool guard_state();
+  // Trajectory (--trajectory): written after a healthy step when due; an I/O error stops the
+  // recording (one log line), never the session.
+  std::unique_ptr<mol::TrajectoryRecorder> trajectory_;
+  std::vector<Vec3> trajectory_x_;
+  void record_trajectory();
   std::atomic<int64_t> steps_{0}, snapshots_{0};
   std::atomic<double> step_ms_{0};
   std::atomic<int> active_dofs_{0};

@@ -23,6 +23,7 @@
 #include "haptree/bus/bus.hpp"
 #include "haptree/bus/cli.hpp"
 #include "haptree/dca.hpp"
+#include "imd_bridge/imd_server.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
 #include "viewer/viewer.hpp"
@@ -124,6 +125,17 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.0, 10000.0))->capture_default_str();
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
+  // ---- IMD (issue 16): --imd-port serves the session over IMD from inside the launcher; the IMD pull
+  // is one more user (id = --users), which sim_server listens to. ----
+  haptree::ImdServerOptions imd;
+  imd.port = 0;   // 0 here = off
+  app.add_option("--imd-port", imd.port,
+                 "serve the session over IMD on this TCP port (VMD: `mol new <pdb>`, `imd connect localhost PORT`); "
+                 "molecular scenes; 0 = off")->check(CLI::Range(0, 65535))->capture_default_str();
+  app.add_option("--imd-bind", imd.bind, "IMD listen address")->capture_default_str();
+  app.add_option("--imd-version", imd.version, "IMD version: 2 (VMD) or 3")->check(CLI::IsMember({2, 3}))
+      ->capture_default_str();
+  // ---- end IMD options ----
   CLI11_PARSE(app, argc, argv);
   if (so.scene == "protein_like" && app.count("--n") > 0 && so.urdf.empty())
     spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", so.n);
@@ -137,6 +149,16 @@ int main(int argc, char** argv) {
     co.max_force_n = max_force_n;
     co.force_scale = force_scale;
     so.max_user_force = haptree::user_force_limit(co);
+  }
+  if (imd.port > 0) {   // IMD: one more user for the IMD pull
+    if (po.enabled) {
+      std::fprintf(stderr, "haptree_run: --imd-port runs in the embedded launcher; with --processes start "
+                           "build/imd_bridge/imd_bridge beside sim_server (README: VMD through IMD)\n");
+      return 2;
+    }
+    so.users = users + 1;
+    imd.user_id = users;
+    imd.scene = so.scene;
   }
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
@@ -208,6 +230,9 @@ int main(int argc, char** argv) {
                  model.nbodies - 1, model.nv, users, fmt::join(bodies, ","),
                  duration_s > 0 ? fmt::format("{:.0f} s", duration_s) : std::string("until Ctrl-C"));
     std::unique_ptr<haptree::Viewer> viewer = start_viewer(bus, so, vl, users);
+    // IMD: the ImdServer on the same bus, in its own thread (binds before the session starts).
+    std::unique_ptr<haptree::ImdServer> imd_server;
+    if (imd.port > 0) imd_server = std::make_unique<haptree::ImdServer>(bus, imd);
     haptree::bus::HandlerThread handler(bus, 5);
     std::atomic<bool> stop{false};
     std::vector<std::thread> threads;
@@ -232,6 +257,11 @@ int main(int argc, char** argv) {
                             k.rate_hz.load(), k.force_n.load(), k.snapshot_age_ms.load());
       }
       (void)last_it;
+      if (imd_server) {   // IMD status
+        const auto& k = imd_server->counters();
+        line += fmt::format(" | imd :{} {}, {} frames", imd_server->port(),
+                            imd_server->client_connected() ? "receiver" : "no receiver", k.frames_sent.load());
+      }
       sum_step_ms += server.last_step_ms();
       ++lines;
       std::printf("%s\n", line.c_str());
@@ -240,6 +270,7 @@ int main(int argc, char** argv) {
     }
     stop = true;
     for (auto& th : threads) th.join();
+    if (imd_thread.joinable()) imd_thread.join();
     handler.stop();
     std::printf("summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
                 "%lld blow-up resets\n",
@@ -260,6 +291,13 @@ int main(int argc, char** argv) {
       std::printf("  viewer: %lld frames sent, %lld dropped for slow tabs, %lld pointer messages\n",
                   static_cast<long long>(viewer->frames_sent()), static_cast<long long>(viewer->frames_dropped()),
                   static_cast<long long>(viewer->pointer_messages()));
+    if (imd_server) {   // IMD summary
+      const auto& k = imd_server->counters();
+      std::printf("  imd: %lld receiver(s), %lld dropped, %lld frames sent (%lld skipped), %lld MDCOMM packets\n",
+                  static_cast<long long>(k.clients.load()), static_cast<long long>(k.dropped.load()),
+                  static_cast<long long>(k.frames_sent.load()), static_cast<long long>(k.frames_skipped.load()),
+                  static_cast<long long>(k.mdcomm.load()));
+    }
     return 0;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());
