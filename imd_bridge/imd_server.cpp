@@ -30,7 +30,10 @@ namespace {
 // The one place outgoing messages are stamped (schema version, clock): adapt here when the
 // message header changes.
 template <class T>
-void stamp_message(T& msg) { bus::stamp(msg); }
+void stamp_message(T& msg) {
+  static const int64_t instance_id = bus::new_instance_id();   // this IMD server's origin (issue 11)
+  bus::stamp(msg, instance_id);
+}
 
 double seconds_since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
 

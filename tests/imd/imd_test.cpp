@@ -187,7 +187,7 @@ struct Fixture {
     Data d(m);
     forward_kinematics(m, d, q);
     lcmt_scene_state s{};
-    bus::stamp(s);
+    bus::stamp(s, 1);
     s.version = version;
     s.sim_time = t;
     s.nbodies = m.nbodies;

@@ -246,7 +246,7 @@ TEST(TrajectoryFromLog, MoleculeAtomsFromLoggedPoses) {
       Data d(*sc.model);
       const auto x = frame(20 + i, &d);
       lcmt_scene_state s{};
-      bus::stamp(s);
+      bus::stamp(s, 1);
       s.version = 1 + 50 * i;     // a state every 50 steps
       s.sim_time = 0.0005 * s.version;
       s.nbodies = sc.model->nbodies;
@@ -268,7 +268,7 @@ TEST(TrajectoryFromLog, MoleculeAtomsFromLoggedPoses) {
     }
     // One coupling snapshot: it names the model (scene states do not).
     lcmt_coupling_snapshot snap{};
-    bus::stamp(snap);
+    bus::stamp(snap, 1);
     const uint64_t fp = sc.model->fingerprint;
     std::memcpy(&snap.model_fingerprint, &fp, 8);
     std::vector<uint8_t> buf(static_cast<size_t>(snap.getEncodedSize()));
