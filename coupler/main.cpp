@@ -7,6 +7,7 @@
 
 #include "coupler/coupler.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/device/device_cli.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
@@ -27,7 +28,12 @@ int main(int argc, char** argv) {
   app.add_option("--max-force-n", o.max_force_n, "force clamp, N")->capture_default_str();
   app.add_option("--stale-after-s", o.stale_after_s, "watchdog: input age that counts as stale")->capture_default_str();
   app.add_option("--user-force-rate-hz", o.user_force_rate_hz, "USER_FORCE publication rate")->capture_default_str();
+  haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
+  haptree::device::add_device_limit_options(app, limits);
   CLI11_PARSE(app, argc, argv);
+  if (!haptree::device::enforce_device_limits(limits, o.stiffness, o.damping, o.position_scale, o.force_scale,
+                                              o.max_force_n, o.rate_hz, "coupler"))
+    return 2;
   o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
   o.shm = b.shm;
   o.channel_suffix = b.channel_suffix;

@@ -22,6 +22,7 @@
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/bus.hpp"
 #include "haptree/dca.hpp"
+#include "haptree/device/device_cli.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
 
@@ -82,7 +83,13 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"shm", "udpm"}))->capture_default_str();
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
+  haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
+  haptree::device::add_device_limit_options(app, limits, /*with_sim_dt=*/false);
   CLI11_PARSE(app, argc, argv);
+  limits.sim_dt_s = so.rate_hz > 0 ? 1.0 / so.rate_hz : limits.sim_dt_s;   // one snapshot per sim step
+  if (!haptree::device::enforce_device_limits(limits, stiffness, damping, position_scale, force_scale,
+                                              max_force_n, coupler_rate_hz, "haptree_run"))
+    return 2;
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   so.users = users;
   std::signal(SIGINT, on_signal);
