@@ -13,6 +13,8 @@ PKGS=(
   python3 python3-matplotlib                    # benchmark plots
   iproute2 util-linux                           # network-namespace tests (ip, unshare)
   tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
+  clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
+  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
 )
 missing=()
 for p in "${PKGS[@]}"; do

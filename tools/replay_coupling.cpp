@@ -9,9 +9,11 @@
 #include <cmath>
 #include <cstdio>
 #include <map>
+#include <memory>
 #include <vector>
 
 #include "coupler/coupler.hpp"
+#include "haptree/bus/auth.hpp"
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
@@ -35,7 +37,13 @@ int main(int argc, char** argv) {
   app.add_option("--max-force-n", o.max_force_n, "force clamp of the session")->capture_default_str();
   app.add_option("--tolerance", tolerance, "max allowed deviation, N")->capture_default_str();
   app.add_option("--channel-suffix", suffix, "channel suffix of the session");
+  std::string key_file;
+  app.add_option("--session-key-file", key_file, "key of a keyed session: events are verified and their "
+                 "authentication trailers stripped (docs/sessions.md)")->envname("HAPTREE_SESSION_KEY_FILE");
   CLI11_PARSE(app, argc, argv);
+  std::unique_ptr<haptree::bus::Authenticator> auth;
+  if (!key_file.empty()) auth = std::make_unique<haptree::bus::Authenticator>(haptree::bus::load_session_key(key_file));
+  int64_t unauthentic = 0;
   o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
   namespace ch = haptree::bus::channel;
   const std::string c_snap = ch::coeffs(o.user, suffix), c_state = ch::device_state(o.device, suffix),
@@ -50,9 +58,14 @@ int main(int argc, char** argv) {
   std::vector<haptree::lcmt_feedback> feedback;
   int64_t undecodable = 0;
   for (const lcm::LogEvent* ev = file.readNextEvent(); ev != nullptr; ev = file.readNextEvent()) {
+    size_t len = static_cast<size_t>(ev->datalen);   // keyed log: the payload before the trailer
+    if (auth && auth->verify(ev->channel, ev->data, len, &len) != haptree::bus::AuthVerdict::kOk) {
+      ++unauthentic;
+      continue;
+    }
     if (ev->channel == c_snap) {
       haptree::lcmt_coupling_snapshot m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) != haptree::bus::DecodeResult::kOk) {
+      if (haptree::bus::decode_checked(ev->data, len, m) != haptree::bus::DecodeResult::kOk) {
         ++undecodable;
         continue;
       }
@@ -61,13 +74,13 @@ int main(int argc, char** argv) {
       snaps[s.version] = std::move(s);   // a restarted server reuses versions: the newest wins
     } else if (ev->channel == c_state) {
       haptree::lcmt_device_state m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) == haptree::bus::DecodeResult::kOk)
+      if (haptree::bus::decode_checked(ev->data, len, m) == haptree::bus::DecodeResult::kOk)
         states[m.seq] = m;
       else
         ++undecodable;
     } else if (ev->channel == c_fb) {
       haptree::lcmt_feedback m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) == haptree::bus::DecodeResult::kOk)
+      if (haptree::bus::decode_checked(ev->data, len, m) == haptree::bus::DecodeResult::kOk)
         feedback.push_back(m);
       else
         ++undecodable;
@@ -110,6 +123,9 @@ int main(int argc, char** argv) {
               feedback.size(), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
               static_cast<long long>(no_snapshot), static_cast<long long>(missing),
               static_cast<long long>(undecodable));
+  if (auth)
+    std::printf("replay_coupling: session key %s: %lld events rejected (no trailer, other key, bad MAC)\n",
+                auth->key().fingerprint.c_str(), static_cast<long long>(unauthentic));
   if (compared == 0) {
     std::printf("nothing to compare: the log needs %s, %s and %s\n", c_snap.c_str(), c_state.c_str(), c_fb.c_str());
     return 1;

@@ -69,6 +69,11 @@ ShmChannel::ShmChannel(const std::string& channel) : channel_(channel), name_(sh
                              " exists but was made by another program or layout; remove /dev/shm" + name_);
   }
   seg_->max_message_bytes.store(kShmMaxMessageBytes);
+  set_session_key(process_session_key());   // keyed session (auth.hpp): nullptr = none
+}
+
+void ShmChannel::set_session_key(std::shared_ptr<const SessionKey> key) {
+  auth_ = key ? std::make_unique<Authenticator>(std::move(key)) : nullptr;
 }
 
 ShmChannel::~ShmChannel() {
@@ -110,10 +115,10 @@ void ShmWriter::end_write(uint32_t size) noexcept {
 }
 
 bool ShmWriter::write(const void* data, size_t size) noexcept {
-  if (size == 0 || size > kShmMaxMessageBytes) return false;
+  if (size == 0 || size + trailer_bytes() > kShmMaxMessageBytes) return false;
   uint8_t* slot = begin_write();
   std::memcpy(slot, data, size);
-  end_write(static_cast<uint32_t>(size));
+  end_write(static_cast<uint32_t>(seal(slot, size)));
   return true;
 }
 
@@ -145,7 +150,12 @@ uint64_t ShmReader::read(void* out, size_t cap, size_t* size) noexcept {
     }
     if (last_ != 0 && idx > last_ + 1) skipped_ += static_cast<int64_t>(idx - last_ - 1);
     last_ = idx;
-    *size = sz;
+    size_t payload = sz;
+    if (auth_ && auth_->open(channel_, out, sz, &payload) != AuthVerdict::kOk) {   // keyed: verify, strip
+      ++rejected_;
+      return 0;
+    }
+    *size = payload;
     return idx;
   }
   return 0;
