@@ -37,8 +37,7 @@ uint64_t get64(const uint8_t* p) {
 
 // HMAC-SHA512-256 (= crypto_auth) over channel, NUL, bytes: multi-part so nothing is copied.
 void mac(const SessionKey& k, const std::string& channel, const uint8_t* data, size_t n, uint8_t* out) {
-  crypto_auth_hmacsha512256_state st;
-  crypto_auth_hmacsha512256_init(&st, k.key.data(), k.key.size());
+  crypto_auth_hmacsha512256_state st = *static_cast<const crypto_auth_hmacsha512256_state*>(k.mac_init.get());
   crypto_auth_hmacsha512256_update(&st, reinterpret_cast<const unsigned char*>(channel.c_str()),
                                    channel.size() + 1);
   crypto_auth_hmacsha512256_update(&st, data, n);
@@ -73,6 +72,9 @@ std::shared_ptr<const SessionKey> session_key_from_bytes(const std::string& byte
   sodium_bin2hex(hex, sizeof hex, fp, 8);
   k->fingerprint = hex;
   k->key_id = get32(fp);
+  auto init = std::make_shared<crypto_auth_hmacsha512256_state>();
+  crypto_auth_hmacsha512256_init(init.get(), k->key.data(), k->key.size());
+  k->mac_init = init;
   return k;
 }
 

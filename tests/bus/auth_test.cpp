@@ -1,12 +1,14 @@
 // Authenticated sessions (haptree/bus/auth.*): keys, seal/open, and a keyed Bus (memq://), shm channel
 // and LCM log that reject strangers, other keys, replays and tampered bytes. udpm: auth_netns_test.cpp.
 #include <gtest/gtest.h>
+#include <sodium.h>
 #include <sys/stat.h>
 
 #include <CLI/CLI.hpp>
 
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <lcm/lcm-cpp.hpp>
@@ -102,6 +104,31 @@ TEST(SessionKey, CommandLineOptionAndEnvironmentVariableSetTheProcessKey) {
   set_process_session_key_file("");   // later tests: unkeyed by default
   EXPECT_EQ(process_session_key(), nullptr);
   fs::remove(p);
+}
+
+TEST(Authenticator, TrailerMacIsLibsodiumCryptoAuthOverChannelNulBytesAndHeader) {
+  // Oracle: the one-shot crypto_auth (HMAC-SHA512-256) of the documented byte string, with the key
+  // derived as documented (BLAKE2b-256 of the file bytes under "haptree session key v1").
+  ASSERT_GE(sodium_init(), 0);
+  const auto k = session_key_from_bytes(kKeyA);
+  uint8_t key[32];
+  static const char ctx[] = "haptree session key v1";
+  crypto_generichash(key, 32, reinterpret_cast<const unsigned char*>(kKeyA.data()), kKeyA.size(),
+                     reinterpret_cast<const unsigned char*>(ctx), sizeof ctx - 1);
+  ASSERT_EQ(std::memcmp(key, k->key.data(), 32), 0);
+  Authenticator a(k);
+  const std::string ch = channel::coeffs(0);
+  for (int round = 0; round < 3; ++round) {   // the copied init state is reused correctly
+    const auto b = sealed(a, ch, user_force(round, 0.25));
+    std::vector<uint8_t> covered(ch.begin(), ch.end());
+    covered.push_back(0);
+    covered.insert(covered.end(), b.begin(), b.end() - 32);
+    uint8_t expect[32];
+    crypto_auth(expect, covered.data(), covered.size(), key);
+    EXPECT_EQ(std::memcmp(expect, b.data() + b.size() - 32, 32), 0) << "round " << round;
+    EXPECT_EQ(b[b.size() - 52], 'H');
+    EXPECT_EQ(b[b.size() - 49], '1');
+  }
 }
 
 TEST(Authenticator, DropsAndCountsStrangersOtherKeysReplaysTamperingAndChannelMoves) {
