@@ -8,6 +8,7 @@
 
 #include "coupler/coupler.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/device/device_cli.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
@@ -50,7 +51,12 @@ int main(int argc, char** argv) {
             return "";
           },
           "HEX"));
+  haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
+  haptree::device::add_device_limit_options(app, limits);
   CLI11_PARSE(app, argc, argv);
+  if (!haptree::device::enforce_device_limits(limits, o.stiffness, o.damping, o.position_scale, o.force_scale,
+                                              o.max_force_n, o.rate_hz, "coupler"))
+    return 2;
   o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
   if (!fingerprint.empty()) o.model_fingerprint = std::stoull(fingerprint, nullptr, 16);
   o.shm = b.shm;

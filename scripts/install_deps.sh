@@ -19,6 +19,8 @@ PKGS=(
   libwebsocketpp-dev libasio-dev                # viewer: HTTP + WebSocket (standalone asio)
   chromium python3-websocket                    # viewer browser test: headless chromium over CDP
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
+  clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
+  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
 )
 missing=()
 for p in "${PKGS[@]}"; do

@@ -6,3 +6,6 @@ bash scripts/install_deps.sh
 bash scripts/build.sh
 cd build
 ctest --output-on-failure -j "${HAPTREE_JOBS:-$(nproc)}" --timeout 900
+cd ..
+# libFuzzer smoke runs (CTest label `fuzz`, 20 s per target) in their own clang tree (docs/fuzzing.md).
+bash scripts/fuzz.sh smoke

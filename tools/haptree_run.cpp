@@ -24,6 +24,7 @@
 #include "haptree/bus/cli.hpp"
 #include "haptree/dca.hpp"
 #include "imd_bridge/imd_server.hpp"
+#include "haptree/device/device_cli.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
 #include "viewer/viewer.hpp"
@@ -136,7 +137,13 @@ int main(int argc, char** argv) {
   app.add_option("--imd-version", imd.version, "IMD version: 2 (VMD) or 3")->check(CLI::IsMember({2, 3}))
       ->capture_default_str();
   // ---- end IMD options ----
+  haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
+  haptree::device::add_device_limit_options(app, limits, /*with_sim_dt=*/false);
   CLI11_PARSE(app, argc, argv);
+  limits.sim_dt_s = so.rate_hz > 0 ? 1.0 / so.rate_hz : limits.sim_dt_s;   // one snapshot per sim step
+  if (!haptree::device::enforce_device_limits(limits, stiffness, damping, position_scale, force_scale,
+                                              max_force_n, coupler_rate_hz, "haptree_run"))
+    return 2;
   if (so.scene == "protein_like" && app.count("--n") > 0 && so.urdf.empty())
     spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", so.n);
   if (gravity.size() == 3) so.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);

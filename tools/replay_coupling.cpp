@@ -15,9 +15,11 @@
 #include <string>
 #include <cstdio>
 #include <map>
+#include <memory>
 #include <vector>
 
 #include "coupler/coupler.hpp"
+#include "haptree/bus/auth.hpp"
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
@@ -51,7 +53,14 @@ int main(int argc, char** argv) {
   app.footer("The coupler's settings (gains, mapping, clamp) are read from the log's HAPTREE_COUPLER_SETTINGS_<user> "
              "messages (the newest one before each FEEDBACK); an option given here overrides the logged value. "
              "Logs without settings messages need every option of the session.");
+  std::string key_file;
+  app.add_option("--session-key-file", key_file, "key of a keyed session: events are verified and their "
+                 "authentication trailers stripped (docs/sessions.md)")->envname("HAPTREE_SESSION_KEY_FILE");
   CLI11_PARSE(app, argc, argv);
+  std::unique_ptr<haptree::bus::Authenticator> auth;
+  if (!key_file.empty()) auth = std::make_unique<haptree::bus::Authenticator>(haptree::bus::load_session_key(key_file));
+  int64_t unauthentic = 0;
+  o.offset = haptree::Vec3(offset[0], offset[1], offset[2]);
   if (end_s != -1 && !(end_s > start_s)) {
     std::fprintf(stderr, "replay_coupling: --end-s %g must be greater than --start-s %g (or -1 for the end)\n", end_s,
                  start_s);
@@ -93,9 +102,14 @@ int main(int argc, char** argv) {
     if (ev->timestamp < t_begin) continue;
     if (ev->timestamp >= t_end) break;
     ++in_window;
+    size_t len = static_cast<size_t>(ev->datalen);   // keyed log: the payload before the trailer
+    if (auth && auth->verify(ev->channel, ev->data, len, &len) != haptree::bus::AuthVerdict::kOk) {
+      ++unauthentic;
+      continue;
+    }
     if (ev->channel == c_snap) {
       haptree::lcmt_coupling_snapshot m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) != haptree::bus::DecodeResult::kOk) {
+      if (haptree::bus::decode_checked(ev->data, len, m) != haptree::bus::DecodeResult::kOk) {
         ++undecodable;
         continue;
       }
@@ -104,13 +118,13 @@ int main(int argc, char** argv) {
       snaps[s.version] = std::move(s);   // a restarted server reuses versions: the newest wins
     } else if (ev->channel == c_settings) {
       haptree::lcmt_coupler_settings m;
-      if (haptree::bus::decode_checked(ev->data, ev->datalen, m) == haptree::bus::DecodeResult::kOk)
+      if (haptree::bus::decode_checked(ev->data, len, m) == haptree::bus::DecodeResult::kOk)
         settings.push_back(m);
       else
         ++undecodable;
     } else if (ev->channel.rfind("HAPTREE_DEVICE_STATE_", 0) == 0 || ev->channel.rfind("HAPTREE_FEEDBACK_", 0) == 0) {
       const auto* b = static_cast<const uint8_t*>(ev->data);
-      device_events.push_back({ev->channel, std::vector<uint8_t>(b, b + ev->datalen), static_cast<int>(settings.size()) - 1});
+      device_events.push_back({ev->channel, std::vector<uint8_t>(b, b + len), static_cast<int>(settings.size()) - 1});
     }
   }
   if (!settings.empty()) {
@@ -198,6 +212,9 @@ int main(int argc, char** argv) {
               feedback.size(), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
               static_cast<long long>(no_snapshot), static_cast<long long>(missing),
               static_cast<long long>(undecodable));
+  if (auth)
+    std::printf("replay_coupling: session key %s: %lld events rejected (no trailer, other key, bad MAC)\n",
+                auth->key().fingerprint.c_str(), static_cast<long long>(unauthentic));
   if (compared == 0) {
     std::printf("nothing to compare: the log needs %s, %s and %s\n", c_snap.c_str(), c_state.c_str(), c_fb.c_str());
     return 1;

@@ -6,6 +6,8 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdio>
+#include <cstring>
 #include <cstdlib>
 #include <sstream>
 
@@ -105,7 +107,26 @@ std::string diagnose_lcm_url(const std::string& url_in) {
   return problem;
 }
 
-Bus::Bus(const std::string& url) : url_(url) {
+// A keyed session names its key by fingerprint; an unkeyed one that crosses hosts says who can inject.
+static void announce_session(const std::string& url_in, const Authenticator* auth) {
+  std::string url = url_in;
+  if (url.empty()) {
+    const char* env = std::getenv("LCM_DEFAULT_URL");
+    url = env ? env : "udpm://239.255.76.67:7667?ttl=0";
+  }
+  if (auth) {
+    std::fprintf(stderr, "[haptree bus] %s: session key %s: every message is authenticated (HMAC-SHA512-256, "
+                 "sender %08x)\n", url.c_str(), auth->key().fingerprint.c_str(), auth->sender_id());
+  } else if (url.rfind("udpm://", 0) == 0 && parse_udpm(url).ttl > 0) {
+    std::fprintf(stderr,
+                 "[haptree bus] WARNING: %s crosses hosts (ttl=%d) WITHOUT a session key: anyone on the LAN "
+                 "can push forces into this session (USER_FORCE) and into the device (FEEDBACK, snapshots). "
+                 "Give every process --session-key-file FILE (or HAPTREE_SESSION_KEY_FILE).\n",
+                 url.c_str(), parse_udpm(url).ttl);
+  }
+}
+
+Bus::Bus(const std::string& url, std::shared_ptr<const SessionKey> key) : url_(url) {
   const std::string problem = diagnose_lcm_url(url);
   if (!problem.empty()) throw BusError(problem);
   lcm_ = std::make_unique<lcm::LCM>(url);
@@ -114,6 +135,8 @@ Bus::Bus(const std::string& url) : url_(url) {
                    "' (LCM printed the reason above, if any). Valid forms: memq://, "
                    "udpm://239.255.76.67:7667?ttl=0, file:///path/log.lcm?mode=w");
   }
+  if (key) auth_ = std::make_unique<Authenticator>(std::move(key));
+  announce_session(url, auth_.get());
 }
 
 Bus::~Bus() = default;
@@ -121,7 +144,16 @@ Bus::~Bus() = default;
 int Bus::publish_raw(const std::string& channel, const void* data, int size) noexcept {
   int r = -1;
   try {
-    r = lcm_->publish(channel, data, static_cast<unsigned>(size));
+    if (auth_) {   // keyed: publish the bytes + trailer from a per-thread buffer (no allocation once grown)
+      thread_local std::vector<uint8_t> sealed;
+      if (size < 0) return fail_publish();
+      sealed.resize(static_cast<size_t>(size) + kAuthTrailerBytes);
+      if (size > 0) std::memcpy(sealed.data(), data, static_cast<size_t>(size));
+      const size_t n = auth_->seal(channel, sealed.data(), static_cast<size_t>(size));
+      r = lcm_->publish(channel, sealed.data(), static_cast<unsigned>(n));
+    } else {
+      r = lcm_->publish(channel, data, static_cast<unsigned>(size));
+    }
   } catch (...) {
     r = -1;
   }
@@ -133,6 +165,7 @@ RawSubscription& Bus::subscribe_raw(const std::string& channel, RawSubscription:
   auto sub = std::make_unique<RawSubscription>(channel, std::move(cb));
   auto* raw = sub.get();
   raw->lcm_subscription = lcm_->subscribe(channel, &RawSubscription::on_raw, raw);
+  raw->auth = auth_.get();
   add(std::move(sub));
   return *raw;
 }

@@ -16,6 +16,7 @@
 #include <thread>
 #include <vector>
 
+#include "haptree/bus/auth.hpp"
 #include "haptree/bus/latest_value.hpp"
 #include "haptree/bus/wire.hpp"
 
@@ -39,7 +40,8 @@ struct ChannelStats {
   std::atomic<int64_t> schema_rejects{0};  // decoded but schema_version != this build's
   std::atomic<int64_t> handler_errors{0};  // the callback threw (caught here)
   std::atomic<int32_t> last_peer_schema{-1};  // schema_version read at byte 8 of the last rejected message
-  int64_t rejected() const noexcept { return decode_errors.load() + schema_rejects.load(); }
+  std::atomic<int64_t> auth_rejects{0};    // keyed session: no/wrong trailer, bad MAC, replay (auth.hpp)
+  int64_t rejected() const noexcept { return decode_errors.load() + schema_rejects.load() + auth_rejects.load(); }
 };
 
 class SubscriptionBase {
@@ -49,11 +51,21 @@ class SubscriptionBase {
   const std::string& channel() const noexcept { return channel_; }
   const ChannelStats& stats() const noexcept { return stats_; }
   lcm::Subscription* lcm_subscription = nullptr;
+  Authenticator* auth = nullptr;   // the Bus's, in a keyed session: messages are verified and stripped
 
  protected:
   std::string channel_;
   ChannelStats stats_;
 };
+
+// Keyed session: verifies and strips the trailer (*size becomes the payload size); counts a rejection.
+inline bool authentic(Authenticator* a, const std::string& channel, const void* data, size_t* size,
+                      ChannelStats& stats) noexcept {
+  if (a == nullptr) return true;
+  if (a->open(channel, data, *size, size) == AuthVerdict::kOk) return true;
+  stats.auth_rejects.fetch_add(1, std::memory_order_relaxed);
+  return false;
+}
 
 // Typed subscription: decodes into one reused T (no allocation once T reached its largest size), checks
 // schema_version, calls the callback with the message. on_raw never throws.
@@ -65,12 +77,14 @@ class Subscription final : public SubscriptionBase {
 
   void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
     stats_.received.fetch_add(1, std::memory_order_relaxed);
-    const DecodeResult r = decode_checked(rbuf->data, rbuf->data_size, msg_);
+    size_t size = rbuf->data_size;
+    if (!authentic(auth, channel, rbuf->data, &size, stats_)) return;
+    const DecodeResult r = decode_checked(rbuf->data, size, msg_);
     if (r != DecodeResult::kOk) {
       (r == DecodeResult::kSchemaMismatch ? stats_.schema_rejects : stats_.decode_errors)
           .fetch_add(1, std::memory_order_relaxed);
       int32_t peer = -1;
-      if (peek_schema_version(rbuf->data, rbuf->data_size, &peer)) stats_.last_peer_schema.store(peer);
+      if (peek_schema_version(rbuf->data, size, &peer)) stats_.last_peer_schema.store(peer);
       return;
     }
     stats_.accepted.fetch_add(1, std::memory_order_relaxed);
@@ -93,9 +107,11 @@ class RawSubscription final : public SubscriptionBase {
   RawSubscription(std::string channel, Callback cb) : SubscriptionBase(std::move(channel)), cb_(std::move(cb)) {}
   void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
     stats_.received.fetch_add(1, std::memory_order_relaxed);
+    size_t size = rbuf->data_size;
+    if (!authentic(auth, channel, rbuf->data, &size, stats_)) return;
     stats_.accepted.fetch_add(1, std::memory_order_relaxed);
     try {
-      cb_(rbuf->data, rbuf->data_size, channel);
+      cb_(rbuf->data, static_cast<uint32_t>(size), channel);
     } catch (...) {
       stats_.handler_errors.fetch_add(1, std::memory_order_relaxed);
     }
@@ -110,7 +126,9 @@ class Bus {
   // url: any LCM URL. "memq://" keeps everything in this process (all components must share this Bus);
   // "udpm://239.255.76.67:7667?ttl=0" between processes/hosts; "" = $LCM_DEFAULT_URL or LCM's default.
   // Throws BusError in plain words (with the fix) when the transport cannot be set up.
-  explicit Bus(const std::string& url = "memq://");
+  // key: the session key (auth.hpp): every message published is sealed, every message received must
+  // verify. Default: the process's key (--session-key-file / HAPTREE_SESSION_KEY_FILE), none if unset.
+  explicit Bus(const std::string& url = "memq://", std::shared_ptr<const SessionKey> key = process_session_key());
   ~Bus();
   Bus(const Bus&) = delete;
   Bus& operator=(const Bus&) = delete;
@@ -134,6 +152,8 @@ class Bus {
     return publish_raw(channel, buf.data(), n);
   }
   int publish_raw(const std::string& channel, const void* data, int size) noexcept;
+  // Keyed session: the authenticator (sender id, counters), nullptr without a key.
+  const Authenticator* authenticator() const noexcept { return auth_.get(); }
 
   // Typed subscription. The callback runs on the thread that handles the bus (see HandlerThread);
   // keep it short (copy into a LatestValue). The Subscription lives as long as the Bus.
@@ -142,6 +162,7 @@ class Bus {
     auto sub = std::make_unique<Subscription<T>>(channel, std::move(cb));
     auto* raw = sub.get();
     raw->lcm_subscription = lcm_->subscribe(channel, &Subscription<T>::on_raw, raw);
+    raw->auth = auth_.get();
     add(std::move(sub));
     return *raw;
   }
@@ -169,6 +190,7 @@ class Bus {
   }
   std::string url_;
   std::unique_ptr<lcm::LCM> lcm_;
+  std::unique_ptr<Authenticator> auth_;   // keyed session only
   mutable std::mutex subs_mutex_;  // guards subs_ (subscribe/list only; never taken in a handler)
   std::vector<std::unique_ptr<SubscriptionBase>> subs_;
   std::atomic<int64_t> publish_errors_{0};

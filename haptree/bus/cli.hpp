@@ -11,6 +11,8 @@
 #include <cstdlib>
 #include <string>
 
+#include "haptree/bus/auth.hpp"
+
 namespace haptree::bus {
 
 struct BusOptions {
@@ -18,6 +20,7 @@ struct BusOptions {
   std::string channel_suffix;                              // appended to every channel name
   bool shm = false;                                        // device <-> coupler link over shared memory
   double mirror_rate_hz = 100.0;                           // shm -> LCM mirror rate (0 = no mirror)
+  std::string session_key_file;                            // keyed session (auth.hpp); "" = none
 };
 
 // A finite number in [lo, hi] (lo excluded when open_lo). CLI::Range lets NaN through (every comparison
@@ -48,6 +51,11 @@ inline void add_bus_options(CLI::App& app, BusOptions& o, bool shm_link = true, 
   app.add_option("--channel-suffix", o.channel_suffix,
                  "appended to every channel name (several sessions on one bus); [A-Za-z0-9_]")
       ->capture_default_str();
+  app.add_option("--session-key-file", o.session_key_file,
+                 "session key (>= 32 bytes, chmod 600): every message carries a MAC and a sequence number, "
+                 "messages without the right MAC, replays and tampered bytes are dropped and counted")
+      ->envname("HAPTREE_SESSION_KEY_FILE")
+      ->each([](const std::string& path) { set_process_session_key_file(path); });
   if (shm_link) app.add_flag("--shm", o.shm, "carry device state and feedback over same-host shared memory");
   if (mirror)
     app.add_option("--mirror-rate-hz", o.mirror_rate_hz,

@@ -161,7 +161,13 @@ std::vector<std::string> reclaim_stale_shm_segments() {
   return removed;
 }
 
-ShmChannel::ShmChannel(const std::string& channel) : channel_(channel), name_(shm_segment_name(channel)) {}
+ShmChannel::ShmChannel(const std::string& channel) : channel_(channel), name_(shm_segment_name(channel)) {
+  set_session_key(process_session_key());   // keyed session (auth.hpp): nullptr = none
+}
+
+void ShmChannel::set_session_key(std::shared_ptr<const SessionKey> key) {
+  auth_ = key ? std::make_unique<Authenticator>(std::move(key)) : nullptr;
+}
 
 ShmChannel::~ShmChannel() { unmap(); }
 
@@ -284,10 +290,10 @@ void ShmWriter::end_write(uint32_t size) noexcept {
 }
 
 bool ShmWriter::write(const void* data, size_t size) noexcept {
-  if (size == 0 || size > kShmMaxMessageBytes) return false;
+  if (size == 0 || size + trailer_bytes() > kShmMaxMessageBytes) return false;
   uint8_t* slot = begin_write();
   std::memcpy(slot, data, size);
-  end_write(static_cast<uint32_t>(size));
+  end_write(static_cast<uint32_t>(seal(slot, size)));
   return true;
 }
 
@@ -390,7 +396,12 @@ uint64_t ShmReader::read(void* out, size_t cap, size_t* size) noexcept {
       ++stale_;
       return 0;
     }
-    *size = sz;
+    size_t payload = sz;
+    if (auth_ && auth_->open(channel_, out, sz, &payload) != AuthVerdict::kOk) {   // keyed: verify, strip
+      ++rejected_;
+      return 0;
+    }
+    *size = payload;
     return idx;
   }
   return 0;

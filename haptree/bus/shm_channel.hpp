@@ -21,10 +21,12 @@
 #include <cstddef>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "haptree/bus/auth.hpp"
 #include "haptree/bus/wire.hpp"
 
 namespace haptree::bus {
@@ -61,12 +63,19 @@ class ShmChannel {
   const std::string& segment_name() const noexcept { return name_; }
   // Removes the segment name (mapped segments stay valid until unmapped). False if it did not exist.
   static bool remove(const std::string& channel);
+  // Keyed session (auth.hpp): writes are sealed, reads verified and stripped (a rejected message counts
+  // in ShmReader::rejected()). Default: the process key. nullptr: unkeyed.
+  void set_session_key(std::shared_ptr<const SessionKey> key);
+  const Authenticator* authenticator() const noexcept { return auth_.get(); }
 
  protected:
   void unmap() noexcept;
   std::string channel_, name_;
   detail::ShmSegment* seg_ = nullptr;
   uint64_t inode_ = 0;   // of the mapped segment: tells a successor's segment of the same name apart
+  std::unique_ptr<Authenticator> auth_;
+  size_t trailer_bytes() const noexcept { return auth_ ? kAuthTrailerBytes : 0; }
+  size_t seal(uint8_t* msg, size_t size) noexcept { return auth_ ? auth_->seal(channel_, msg, size) : size; }
 };
 
 class ShmWriter : public ShmChannel {
@@ -82,10 +91,10 @@ class ShmWriter : public ShmChannel {
   template <class T>
   bool write_msg(const T& msg) noexcept {
     const int n = msg.getEncodedSize();
-    if (n < 0 || static_cast<size_t>(n) > kShmMaxMessageBytes) return false;
+    if (n < 0 || static_cast<size_t>(n) + trailer_bytes() > kShmMaxMessageBytes) return false;
     uint8_t* slot = begin_write();
     const bool ok = msg.encode(slot, 0, n) == n;
-    end_write(ok ? static_cast<uint32_t>(n) : 0u);
+    end_write(ok ? static_cast<uint32_t>(seal(slot, static_cast<size_t>(n))) : 0u);
     return ok;
   }
   uint64_t written() const noexcept { return written_; }

@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cstring>
 #include <random>
+#include <string>
 
 #include "haptree/lcmt_coupling_snapshot.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -116,7 +117,29 @@ inline bool counts_plausible(const lcmt_process_stats*, const uint8_t* d, size_t
   const size_t off = 40 + static_cast<size_t>(len) + 4 + 32 + 56;
   int32_t n = 0;
   // each extra: name (4-byte length + at least NUL) and a double
-  return read_i32(d, size, off, &n) && count_fits(n, size, off + 4, 5 + 8);
+  if (!read_i32(d, size, off, &n) || !count_fits(n, size, off + 4, 5 + 8)) return false;
+  // Each name's length must be >= 1 and fit: the generated decode computes `length - 1` first, which
+  // overflows for INT32_MIN (undefined behaviour, found by fuzz/lcm_decode).
+  size_t pos = off + 4;
+  for (int32_t i = 0; i < n; ++i) {
+    int32_t l = 0;
+    if (!read_i32(d, size, pos, &l) || l < 1 || !count_fits(l, size, pos + 4, 1)) return false;
+    pos += 4 + static_cast<size_t>(l);
+  }
+  return true;
+}
+
+// LCM strings are NUL-terminated on the wire. The generated decode keeps a NUL inside the string, but
+// encode writes strlen() bytes while getEncodedSize() counts size(): such a message would re-encode
+// shorter than it claims (found by fuzz/lcm_decode). A string with an embedded NUL is malformed.
+inline bool no_nul(const std::string& s) { return s.find('\0') == std::string::npos; }
+template <class T>
+inline bool strings_plausible(const T&) { return true; }
+inline bool strings_plausible(const lcmt_process_stats& m) {
+  if (!no_nul(m.process_name)) return false;
+  for (const auto& n : m.extra_names)
+    if (!no_nul(n)) return false;
+  return true;
 }
 }  // namespace detail
 
@@ -135,6 +158,7 @@ DecodeResult decode_checked(const void* data, size_t size, T& msg) noexcept {
   try {
     const int n = msg.decode(data, 0, static_cast<int>(size));
     if (n < 0 || static_cast<size_t>(n) != size) return DecodeResult::kMalformed;
+    if (!detail::strings_plausible(msg)) return DecodeResult::kMalformed;
   } catch (...) {  // e.g. a negative string length turned into a huge assign()
     return DecodeResult::kMalformed;
   }

@@ -3,8 +3,10 @@
 #include <lcm/lcm-cpp.hpp>
 
 #include <cmath>
+#include <memory>
 #include <stdexcept>
 
+#include "haptree/bus/auth.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
 
@@ -17,9 +19,14 @@ ReplayDevice::ReplayDevice(const DeviceSpec& spec, const std::string& log_path, 
   if (!log.good()) throw std::runtime_error(log_path + ": cannot open as an LCM log file");
   lcmt_device_state msg;
   int64_t t0 = 0;
+  // A log of a keyed session (bus/auth.hpp) is read with the process's key: verified, trailer stripped.
+  const auto key = bus::process_session_key();
+  const std::unique_ptr<bus::Authenticator> auth = key ? std::make_unique<bus::Authenticator>(key) : nullptr;
   for (const lcm::LogEvent* ev = log.readNextEvent(); ev != nullptr; ev = log.readNextEvent()) {
     if (ev->channel != channel) continue;
-    if (bus::decode_checked(ev->data, static_cast<size_t>(ev->datalen), msg) != bus::DecodeResult::kOk) {
+    size_t len = static_cast<size_t>(ev->datalen);
+    if ((auth && auth->verify(ev->channel, ev->data, len, &len) != bus::AuthVerdict::kOk) ||
+        bus::decode_checked(ev->data, len, msg) != bus::DecodeResult::kOk) {
       ++rejected_;
       continue;
     }

@@ -37,7 +37,9 @@ Eigen::VectorXd numbers(const nlohmann::json& v, int n, const std::string& src,
 
 void normalise_quat(Eigen::Ref<Eigen::VectorXd> q4, const std::string& src,
                     const std::string& where) {
-  const double n = q4.norm();
+  // stableNorm: norm() squares first, so finite entries above ~1e154 gave n = inf and a zero
+  // quaternion (found with fuzz/state_json's oracle).
+  const double n = q4.stableNorm();
   if (!(n > 1e-12)) fail(src, where, "quaternion is zero");
   q4 /= n;
 }

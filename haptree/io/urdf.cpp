@@ -242,6 +242,41 @@ class Converter {
   std::vector<BodyRec> recs_;
 };
 
+// A URDF's joints must form a tree: every link has at most one parent joint and no chain of parents
+// comes back to where it started. urdfdom 3.0 finds both faults itself, but only after linking the
+// links to each other with shared_ptr, and then leaks the whole cyclic graph (found by fuzz/urdf, as
+// a LeakSanitizer report). So they are refused here first, with the joint's line.
+void check_joint_tree(const TiXmlDocument& doc, const std::string& source) {
+  const TiXmlElement* robot = doc.FirstChildElement("robot");
+  if (!robot) return;   // urdfdom reports a missing <robot>
+  std::map<std::string, std::string> parent_of;   // child link -> parent link
+  for (const TiXmlElement* j = robot->FirstChildElement("joint"); j; j = j->NextSiblingElement("joint")) {
+    const TiXmlElement* p = j->FirstChildElement("parent");
+    const TiXmlElement* c = j->FirstChildElement("child");
+    const char* pl = p ? p->Attribute("link") : nullptr;
+    const char* cl = c ? c->Attribute("link") : nullptr;
+    if (!pl || !cl) continue;   // urdfdom reports the missing element
+    const char* jn = j->Attribute("name");
+    const std::string where = source + ":" + std::to_string(j->Row()) + ": joint '" + (jn ? jn : "") + "': ";
+    if (std::string(pl) == cl) throw UrdfError(where + "link '" + cl + "' is its own parent");
+    const auto [it, fresh] = parent_of.emplace(cl, pl);
+    if (!fresh)
+      throw UrdfError(where + "link '" + cl + "' already has parent link '" + it->second +
+                      "' (a URDF is a tree: one parent joint per link)");
+  }
+  for (const auto& entry : parent_of) {   // walk up from every link; more steps than joints = a cycle
+    const std::string* link = &entry.first;
+    for (size_t steps = 0;; ++steps) {
+      const auto up = parent_of.find(*link);
+      if (up == parent_of.end()) break;
+      if (steps > parent_of.size())
+        throw UrdfError(source + ": the joints form a cycle through link '" + entry.first +
+                        "' (a URDF is a tree)");
+      link = &up->second;
+    }
+  }
+}
+
 }  // namespace
 
 std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::string& source,
@@ -254,6 +289,7 @@ std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::strin
       throw UrdfError(source + ":" + std::to_string(doc.ErrorRow()) + ":" +
                       std::to_string(doc.ErrorCol()) + ": XML parse error: " +
                       one_line(doc.ErrorDesc()));
+    check_joint_tree(doc, source);
   }
   urdf::ModelInterfaceSharedPtr urdf;
   std::string err;

@@ -227,6 +227,53 @@ TEST(Urdf, ErrorsNameFileAndElement) {
   expect_error("bad_negative_mass.urdf", "link", "rod", "mass");
 }
 
+// Joints that do not form a tree are refused before urdfdom sees them: urdfdom 3.0 leaks the link graph
+// on these (fuzz/regressions/urdf/joint_cycle_leaks_in_urdfdom), and its own message names no line.
+TEST(Urdf, JointCyclesAndSecondParentsAreRefusedWithTheJointsLine) {
+  const std::string link = "<link name='%'><inertial><mass value='1'/>"
+                           "<inertia ixx='1' ixy='0' ixz='0' iyy='1' iyz='0' izz='1'/></inertial></link>\n";
+  auto L = [&](const std::string& n) {
+    std::string s = link;
+    s.replace(s.find('%'), 1, n);
+    return s;
+  };
+  auto J = [](const std::string& n, const std::string& p, const std::string& c) {
+    return "<joint name='" + n + "' type='revolute'><parent link='" + p + "'/><child link='" + c +
+           "'/><axis xyz='0 0 1'/><limit lower='-1' upper='1' effort='1' velocity='1'/></joint>\n";
+  };
+  auto msg = [](const std::string& xml) {
+    try {
+      io::parse_urdf(xml, "t.urdf");
+    } catch (const io::UrdfError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  const std::string cycle = "<robot name='r'>\n" + L("a") + L("b") + L("c") + J("j1", "a", "b") +
+                            J("j2", "b", "c") + J("j3", "c", "b") + "</robot>\n";
+  EXPECT_NE(msg(cycle).find("t.urdf:7: joint 'j3': link 'b' already has parent link 'a'"), std::string::npos)
+      << msg(cycle);
+  const std::string loop = "<robot name='r'>\n" + L("a") + L("b") + J("j1", "a", "b") + J("j2", "b", "a") +
+                           "</robot>\n";
+  EXPECT_NE(msg(loop).find("the joints form a cycle through link"), std::string::npos) << msg(loop);
+  const std::string self = "<robot name='r'>\n" + L("a") + J("j1", "a", "a") + "</robot>\n";
+  EXPECT_NE(msg(self).find("t.urdf:3: joint 'j1': link 'a' is its own parent"), std::string::npos) << msg(self);
+}
+
+TEST(StateJson, HugeFiniteQuaternionIsNormalisedNotZeroed) {
+  // norm() overflowed to inf for entries ~1e300 and the quaternion came out all zeros
+  // (fuzz/regressions/state_json/huge_quaternion_became_zero).
+  auto m = io::load_urdf(kDir + "/floating.urdf");
+  const nlohmann::json doc = {{"q", {{"base_free", {1, 2, 3, 1e300, 1e300, 0, 0}}}}};
+  const State st = io::state_from_json(*m, doc, "t.json");
+  const int k = m->joint_index("base_free");
+  const Eigen::Vector4d q = st.q.segment<4>(m->q_adr[k] + 3);
+  EXPECT_NEAR(q(0), std::sqrt(0.5), 1e-15);
+  EXPECT_NEAR(q(1), std::sqrt(0.5), 1e-15);
+  EXPECT_EQ(q(2), 0.0);
+  EXPECT_EQ(q(3), 0.0);
+}
+
 TEST(StateJson, ConventionsAndErrors) {
   auto m = io::load_urdf(kDir + "/floating.urdf");
   const nlohmann::json doc = {{"q", {{"base_free", {1, 2, 3, 2, 0, 0, 0}}, {"left_hip", 0.5}}},
