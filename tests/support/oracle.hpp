@@ -1,6 +1,7 @@
 // Independent O(n^3) forward-dynamics oracle for tests: composite-rigid-body mass matrix and
-// recursive Newton–Euler bias, world-origin coordinates, Cholesky — all in long double. It shares
-// only the Model's *description* with the DCA code (no kinematics, no spatial helpers).
+// recursive Newton–Euler bias, coordinates about body 1's joint point (world axes), Cholesky — all
+// in long double. It shares only the Model's *description* with the DCA code (no kinematics, no
+// spatial helpers).
 #pragma once
 
 #include <vector>
