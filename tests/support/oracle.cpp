@@ -2,6 +2,8 @@
 
 #include <random>
 
+#include <Eigen/Eigenvalues>
+
 namespace haptree::testing {
 
 namespace {
@@ -186,6 +188,43 @@ OracleResult oracle_forward_dynamics(const Model& m, const State& st,
     out.r[k] = (p[k] + o).cast<double>();
   }
   return out;
+}
+
+namespace {
+std::vector<int> free_dofs(int nv, const std::vector<bool>& locked) {
+  std::vector<int> f;
+  for (int i = 0; i < nv; ++i)
+    if (locked.empty() || !locked[i]) f.push_back(i);
+  return f;
+}
+}  // namespace
+
+double mass_matrix_condition(const OracleResult& r, const std::vector<bool>& locked) {
+  const auto f = free_dofs(static_cast<int>(r.H.rows()), locked);
+  const int n = static_cast<int>(f.size());
+  if (n == 0) return 1;
+  Eigen::MatrixXd Hf(n, n);
+  for (int x = 0; x < n; ++x)
+    for (int y = 0; y < n; ++y) Hf(x, y) = static_cast<double>(r.H(f[x], f[y]));
+  const Eigen::VectorXd ev = Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(Hf).eigenvalues();
+  // The smallest eigenvalue from a double eigensolver is good to ~ε·λ_max: clamp there.
+  return ev(n - 1) / std::max(ev(0), ev(n - 1) * 1e-16);
+}
+
+double qdd_error_bound(const OracleResult& r, const State& st, double c,
+                       const std::vector<bool>& locked) {
+  const auto f = free_dofs(static_cast<int>(r.H.rows()), locked);
+  LD tn = 0, cn = 0, dn = 0;
+  for (int i : f) {
+    const LD t = st.tau(i), cc = r.C(i);
+    tn += t * t;
+    cn += cc * cc;
+    dn += (t - cc) * (t - cc);
+  }
+  const double cancel =
+      dn > 0 ? static_cast<double>((std::sqrt(tn) + std::sqrt(cn)) / std::sqrt(dn)) : 1.0;
+  return c * static_cast<double>(std::max<std::size_t>(f.size(), 1)) * kEps *
+         mass_matrix_condition(r, locked) * std::max(1.0, cancel);
 }
 
 double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor) {

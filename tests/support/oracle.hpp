@@ -27,6 +27,17 @@ struct OracleResult {
 OracleResult oracle_forward_dynamics(const Model& model, const State& state,
                                      const std::vector<bool>& locked = {});
 
+// Tolerances from error analysis (issue 14.3) instead of from one machine. q̈ solves H q̈ = τ − C;
+// an algorithm whose result is the exact solution of a problem perturbed by c·n·ε relative to its
+// data (backward stable, as the DCA/ABA recursions are) has a normwise relative forward error
+//   ≤ c · n · ε · κ₂(H) · max(1, (‖τ‖ + ‖C‖) / ‖τ − C‖),
+// κ₂(H) the mass matrix's condition number and the last factor the cancellation in the right-hand
+// side. Both are computed by the oracle (free DOFs only when `locked` is given).
+double mass_matrix_condition(const OracleResult& r, const std::vector<bool>& locked = {});
+double qdd_error_bound(const OracleResult& r, const State& st, double c,
+                       const std::vector<bool>& locked = {});
+constexpr double kEps = 2.220446049250313e-16;   // double's machine epsilon
+
 // Relative error ‖a − b‖ / max(‖b‖, floor).
 double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor = 1e-12);
 
