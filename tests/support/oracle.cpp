@@ -227,6 +227,10 @@ double qdd_error_bound(const OracleResult& r, const State& st, double c,
          mass_matrix_condition(r, locked) * std::max(1.0, cancel);
 }
 
+double dca_error_bound(const Model& m, const State& st, double c, const std::vector<bool>& locked) {
+  return qdd_error_bound(oracle_forward_dynamics(m, st, locked), st, c, locked);
+}
+
 double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor) {
   return (a - b).norm() / std::max(b.norm(), floor);
 }

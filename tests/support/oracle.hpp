@@ -37,6 +37,13 @@ double mass_matrix_condition(const OracleResult& r, const std::vector<bool>& loc
 double qdd_error_bound(const OracleResult& r, const State& st, double c,
                        const std::vector<bool>& locked = {});
 constexpr double kEps = 2.220446049250313e-16;   // double's machine epsilon
+// The constant c used by the suite: the largest err/(n·ε·κ·cancel) measured over the random
+// sweep of tests/stress/origin_independence_test.cpp is 0.4 (err/bound 0.04 with c = 10), so
+// c = 10 leaves 25× for other CPUs' orderings (FMA, vector width), not for one machine's luck.
+constexpr double kBoundC = 10;
+// qdd_error_bound of (model, state) in one call (runs the oracle: O(n³), fine to ~1000 DOFs).
+double dca_error_bound(const Model& model, const State& state, double c = kBoundC,
+                       const std::vector<bool>& locked = {});
 
 // Relative error ‖a − b‖ / max(‖b‖, floor).
 double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor = 1e-12);
