@@ -272,17 +272,25 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   d.qdd.setZero();
   // Composite inertia and body placements relative to each frontier node's reference body.
   std::vector<int>& stack = ad.scratch_stack;
+  for (int F : ad.frontier)
+    for_each_body(t, F, stack, [&](int k) { ad.frontier_of_body[k] = F; });
+  // r_k − r_ref from the local offsets d_k (ids ascending: a node's bodies are a connected
+  // subtree whose smallest id is ref, so parent[k] is done first), never r_k − r_ref of two world
+  // positions, which lost ε·|r| at a far origin (issue 14).
+  for (int k = 0; k < m.nbodies; ++k) {
+    if (ad.frontier_of_body[k] < 0) continue;
+    const int ref = ad.ref_body[ad.frontier_of_body[k]];
+    ad.local_r[k] = k == ref ? Vec3::Zero()
+                             : Vec3(ad.local_r[m.parent[k]] + d.R[ref].transpose() * d.d[k]);
+  }
   for (int F : ad.frontier) {
     const int ref = ad.ref_body[F];
     const Mat3 Rr = d.R[ref];
-    const Vec3 rr = d.r[ref];
     double M = 0;
     Vec3 mc = Vec3::Zero();
     bool ground = false;
     for_each_body(t, F, stack, [&](int k) {
-      ad.frontier_of_body[k] = F;
       ad.local_R[k] = k == ref ? Mat3::Identity() : Mat3(Rr.transpose() * d.R[k]);
-      ad.local_r[k] = k == ref ? Vec3::Zero() : Vec3(Rr.transpose() * (d.r[k] - rr));
       if (k == 0) ground = true;
       M += m.mass[k];
       mc += m.mass[k] * (ad.local_r[k] + ad.local_R[k] * m.com[k]);

@@ -58,6 +58,7 @@ Data::Data(const Model& model) {
   qdd = Eigen::VectorXd::Zero(model.nv);
   const int nc = model.ncluster_nodes;
   if (nc > 0) cluster_offset.assign(nb, Vec3::Zero());
+  if (nc > 0) cluster_offset_lo.assign(nb, Vec3::Zero());
   cM.assign(nc, Mat6::Zero());
   cMinv.assign(nc, Mat6::Zero());
   cIA.assign(nc, Mat6::Zero());

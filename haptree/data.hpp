@@ -60,14 +60,19 @@ struct Data {
   std::vector<Vec6> taut;              // (nnodes) (1 - WΦ̂) D τ, kept so β splits cleanly
 
   // Inertia form of cluster nodes (Model::cluster_index; full DCA only): the node's articulated
-  // inertia M and bias force p at its cluster's root point, a_o = cMinv Σ X_xᵀ f_x + cb with
+  // inertia M and bias force p at its reference point o = r_{Model::cluster_ref[node]},
+  // a_o = cMinv Σ X_xᵀ f_x + cb with
   // cMinv = M⁻¹, cb = M⁻¹p (or their pinned versions when the node holds the cluster's ground
   // joint); for projection nodes also the one-handle side's articulated inertia IA and bias pA.
-  std::vector<Vec3> cluster_offset;    // (nbodies if clusters) r_k − r_{cluster_root[k]}
+  // r_k − r_{cluster_root[k]} is kept as an unevaluated sum hi + lo (compensated summation of the
+  // d's), so the offset between two bodies on the far side of a long weld is exact to O(ε) of
+  // their own distance, not O(ε) of the weld's length.
+  std::vector<Vec3> cluster_offset;    // (nbodies if clusters) hi part
+  std::vector<Vec3> cluster_offset_lo; // (nbodies if clusters) lo part
   std::vector<Mat6> cM, cMinv, cIA;    // (ncluster_nodes)
   std::vector<Vec6> cp, cpA;           // (ncluster_nodes)
   std::vector<Vec6> cqa;               // (ncluster_nodes) U⁻¹(στ + Sᵀ pA), first nJ entries
-  std::vector<Vec6> ca;                // (ncluster_nodes) acceleration of the cluster root point
+  std::vector<Vec6> ca;                // (ncluster_nodes) acceleration of the reference point
   std::vector<Vec6> cb;                // (ncluster_nodes) a_o with no handle forces (cMinv = ∂a_o/∂F_o)
   std::vector<std::uint8_t> cluster_live;   // (nnodes) assembled in inertia form in this pass
 

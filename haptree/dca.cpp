@@ -423,18 +423,40 @@ namespace {
 
 // ---- Inertia form of cluster nodes (Model::cluster_case) -------------------------------------
 // A node whose handles all attach to one rigid cluster is described by its articulated inertia M
-// and bias force p at the cluster's root point o: a_o = M⁻¹(Σ_x X_xᵀ f_x + p), X_x the motion
-// shift from o to handle x. Joining two such nodes across a fixed joint adds M and p; joining a
-// one-handle side across a moving joint adds its ABA projection. No difference of large mobilities
-// is formed, so light pieces of a split hub do not cancel (ALGORITHMS §4.4, §16.4).
+// and bias force p at its reference point o = r_{cluster_ref[node]}: a_o = M⁻¹(Σ_x X_xᵀ f_x + p),
+// X_x the motion shift from o to handle x. Joining two such nodes across a fixed joint adds M and
+// p; joining a one-handle side across a moving joint adds its ABA projection. No difference of
+// large mobilities is formed, so light pieces of a split hub do not cancel (ALGORITHMS §4.4,
+// §16.4). o is a body of the node near most of its mass, not the cluster's root: an inertia moved
+// across a long weld has a condition number ~ (length/radius of gyration)⁴, and its inverse lost
+// 1e-5 of q̈ at 10⁶ m (issue 14). Mobilities are shifted instead (no cancellation).
 
 using JointVec = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 6, 1>;
 using JointSq = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
 
-// Offset of handle `slot` of `node` from the node's cluster root point.
-inline Vec3 handle_offset(const Model& m, const Data& d, int node, int slot) {
+// r_a − r_b for two bodies of one cluster, from the compensated offsets (exact to O(ε|r_a − r_b|)).
+inline Vec3 body_offset(const Data& d, int a, int b) {
+  if (a == b) return Vec3::Zero();
+  return (d.cluster_offset[a] - d.cluster_offset[b]) +
+         (d.cluster_offset_lo[a] - d.cluster_offset_lo[b]);
+}
+
+// Offset of handle `slot` of `node` from the origin of body `ref` (same cluster).
+inline Vec3 handle_offset_from(const Model& m, const Data& d, int node, int slot, int ref) {
   const int J = m.tree.handle(node, slot), a = m.tree.attached_body(node, slot);
-  return a == J ? d.cluster_offset[J] : Vec3(d.cluster_offset[a] + d.d[J]);
+  const Vec3 e = body_offset(d, a, ref);
+  return a == J ? e : Vec3(e + d.d[J]);
+}
+// Offset of handle `slot` of `node` from the node's reference point.
+inline Vec3 handle_offset(const Model& m, const Data& d, int node, int slot) {
+  return handle_offset_from(m, d, node, slot, m.cluster_ref[node]);
+}
+
+// Motion subspace S given at r_a, expressed at r_a + e: bottom rows − [e]× top rows.
+inline void shift_motion_cols(JointMat& S, const Vec3& e) {
+  if (e.isZero(0)) return;
+  const Mat3 E = skew(e);
+  for (int c = 0; c < S.cols(); ++c) S.col(c).tail<3>() -= E * S.col(c).head<3>();
 }
 
 // Inertia I given at point o + delta, moved to o: Xᵀ I X with X = M(o → o + delta).
@@ -444,17 +466,18 @@ inline Mat6 inertia_at_origin(const Mat6& I, const Vec3& delta) {
   return X.transpose() * I * X;
 }
 
-// Inertia form (M, p) of a leaf or an inertia-form node at its cluster root point.
-inline void inertia_form(const Model& m, const Data& d, int node, Mat6& M, Vec6& p) {
+// Inertia form (M, p) of a leaf or an inertia-form node, moved from its own reference point to the
+// origin of body `ref` (a no-op when they coincide, as on the heavier side of a merge).
+inline void inertia_form(const Model& m, const Data& d, int node, int ref, Mat6& M, Vec6& p) {
+  const Vec3 e = body_offset(d, m.cluster_ref[node], ref);
   if (m.tree.is_leaf(node)) {
     const int k = m.tree.body[node];
-    const Vec3& e = d.cluster_offset[k];
     M = inertia_at_origin(d.I[k], e);
     p = shift_force(d.p_bias[k], -e);
   } else {
     const int c = m.cluster_index[node];
-    M = d.cM[c];
-    p = d.cp[c];
+    M = inertia_at_origin(d.cM[c], e);
+    p = shift_force(d.cp[c], -e);
   }
 }
 
@@ -487,15 +510,16 @@ void assemble_inertia_form(const Model& m, Data& d, int node, const Eigen::Vecto
   const auto& t = m.tree;
   const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
   const int c = m.cluster_index[node];
+  const int ref = m.cluster_ref[node];
   Mat6 M;
   Vec6 p;
   if (m.cluster_case[node] == Model::ClusterCase::kGroundPin) {
-    inertia_form(m, d, Q, M, p);
+    inertia_form(m, d, Q, ref, M, p);
   } else if (m.cluster_case[node] == Model::ClusterCase::kFixedMerge) {
     Mat6 MP, MQ;
     Vec6 pP, pQ;
-    inertia_form(m, d, P, MP, pP);
-    inertia_form(m, d, Q, MQ, pQ);
+    inertia_form(m, d, P, ref, MP, pP);
+    inertia_form(m, d, Q, ref, MQ, pQ);
     M = MP + MQ;
     p = pP + pQ;
   } else {
@@ -523,7 +547,7 @@ void assemble_inertia_form(const Model& m, Data& d, int node, const Eigen::Vecto
     pa -= sigma * (Ia * d.c[J]);
     Mat6 MI;
     Vec6 pI;
-    inertia_form(m, d, In, MI, pI);
+    inertia_form(m, d, In, ref, MI, pI);
     const Vec3 delta = handle_offset(m, d, In, o_is_q ? t.slot_j[node] : t.slot_k[node]);
     M = MI + inertia_at_origin(Ia, delta);
     p = pI + shift_force(pa, -delta);
@@ -539,12 +563,14 @@ void assemble_inertia_form(const Model& m, Data& d, int node, const Eigen::Vecto
     Minv = llt.solve(Mat6::Identity());
     a0 = llt.solve(p);
   } else {
-    // The pin joint enters the cluster root (offset 0): a_o = S q̈0 + c0 with
+    // The pin joint enters the cluster root r_pin; S and c0 moved to o: a_o = S q̈0 + c0 with
     // q̈0 = U⁻¹(τ0 + Sᵀ(F_o + p − M c0)), U = SᵀMS.
     JointMat S, T, D;
     joint_subspaces(m, d, pin, S, T, D);
+    const Vec3 e_pin = body_offset(d, ref, pin);
+    shift_motion_cols(S, e_pin);
     const int n0 = static_cast<int>(S.cols());
-    const Vec6& c0 = d.c[pin];
+    const Vec6 c0 = shift_motion(d.c[pin], e_pin);
     Minv.setZero();
     a0 = c0;
     if (n0 > 0) {
@@ -599,38 +625,41 @@ void top_down_inertia_form(const Model& m, Data& d, int node) {
     if (i != j) d.f(P, i) = d.f(node, ci++);
   for (int l = 0; l < hQ; ++l)
     if (l != k) d.f(Q, l) = d.f(node, ci++);
+  const int ref = m.cluster_ref[node];
   auto pass_down = [&](int child, const Vec6& ac) {
-    if (!t.is_leaf(child) && d.cluster_live[child]) d.ca[m.cluster_index[child]] = ac;
+    if (!t.is_leaf(child) && d.cluster_live[child])
+      d.ca[m.cluster_index[child]] = shift_motion(ac, body_offset(d, m.cluster_ref[child], ref));
   };
   Vec6 fc;
   if (m.cluster_case[node] == Model::ClusterCase::kGroundPin) {
-    // J enters the cluster root (offset 0): q̈ = Sᵀ(a − c_J); the ground's force from Q's equation.
+    // J enters the cluster root r_J: q̈ = Sᵀ(a_J − c_J); the ground's force from Q's equation.
     Mat6 MQ;
     Vec6 pQ;
-    inertia_form(m, d, Q, MQ, pQ);
+    inertia_form(m, d, Q, ref, MQ, pQ);
     Vec6 g = MQ * a - pQ;
     for (int x = 0; x < hQ; ++x)
-      if (x != k) g -= shift_force(d.f(Q, x), -handle_offset(m, d, Q, x));
-    fc = shift_force(g, handle_offset(m, d, Q, k));
+      if (x != k) g -= shift_force(d.f(Q, x), -handle_offset_from(m, d, Q, x, ref));
+    fc = shift_force(g, handle_offset_from(m, d, Q, k, ref));
     const int nJ = m.v_num[J];
     if (nJ > 0 && d.kind[node] == NodeKind::kActive) {
       JointMat S, T, D;
       joint_subspaces(m, d, J, S, T, D);
-      d.qdd.segment(m.v_adr[J], nJ) = S.transpose() * (a - d.c[J]);
+      d.qdd.segment(m.v_adr[J], nJ) =
+          S.transpose() * (shift_motion(a, body_offset(d, J, ref)) - d.c[J]);
     }
     pass_down(Q, a);
   } else if (m.cluster_case[node] == Model::ClusterCase::kFixedMerge) {
     // Force through J from the lighter side's equation M_L a = Σ X_xᵀ f_x + p_L.
     Mat6 MP, MQ;
     Vec6 pP, pQ;
-    inertia_form(m, d, P, MP, pP);
-    inertia_form(m, d, Q, MQ, pQ);
+    inertia_form(m, d, P, ref, MP, pP);
+    inertia_form(m, d, Q, ref, MQ, pQ);
     const bool use_q = MQ.trace() <= MP.trace();
     const int L = use_q ? Q : P, sJ = use_q ? k : j;
     Vec6 g = (use_q ? MQ : MP) * a - (use_q ? pQ : pP);
     for (int x = 0; x < t.handle_num[L]; ++x)
-      if (x != sJ) g -= shift_force(d.f(L, x), -handle_offset(m, d, L, x));
-    const Vec6 fL = shift_force(g, handle_offset(m, d, L, sJ));
+      if (x != sJ) g -= shift_force(d.f(L, x), -handle_offset_from(m, d, L, x, ref));
+    const Vec6 fL = shift_force(g, handle_offset_from(m, d, L, sJ, ref));
     fc = use_q ? fL : Vec6(-fL);
     pass_down(P, a);
     pass_down(Q, a);
@@ -713,9 +742,22 @@ void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
 void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
   const auto& t = m.tree;
   if (m.ncluster_nodes > 0)
-    for (int k = 1; k < m.nbodies; ++k)
-      d.cluster_offset[k] =
-          m.cluster_root[k] == k ? Vec3::Zero() : Vec3(d.cluster_offset[m.parent[k]] + d.d[k]);
+    for (int k = 1; k < m.nbodies; ++k) {
+      if (m.cluster_root[k] == k) {
+        d.cluster_offset[k].setZero();
+        d.cluster_offset_lo[k].setZero();
+        continue;
+      }
+      // Knuth's two-sum: hi + lo = hi_p + lo_p + d_k with no rounding error kept in hi alone.
+      const int p = m.parent[k];
+      const Vec3& a = d.cluster_offset[p];
+      const Vec3& b = d.d[k];
+      const Vec3 s = a + b;
+      const Vec3 bb = s - a;
+      const Vec3 err = (a - (s - bb)) + (b - bb);
+      d.cluster_offset[k] = s;
+      d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + err;
+    }
   std::int64_t count = 0;
   for (int node = t.nnodes() - 1; node >= 0; --node) {
     if (t.is_leaf(node)) {

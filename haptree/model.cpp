@@ -113,7 +113,8 @@ struct Hasher {
 //    cluster (projection of the one-handle side's articulated inertia across the joint, as in ABA);
 //  - one child is the ground and the principal joint enters the cluster's root body: the node keeps
 //    the cluster's M and p and is "pinned" by that joint (its mobility is S U⁻¹ Sᵀ, U = SᵀMS).
-// Leaves are always in inertia form (their body's inertia). Bodies fixed to the ground stay out.
+// Leaves are always in inertia form (their body's inertia). A body fixed to the ground is the root
+// of its own cluster, pinned by that fixed joint.
 void classify_clusters(Model& m) {
   const auto& t = m.tree;
   const int nn = t.nnodes();
@@ -127,32 +128,41 @@ void classify_clusters(Model& m) {
   m.cluster_index.assign(nn, -1);
   m.cluster_case.assign(nn, Model::ClusterCase::kNone);
   m.cluster_pin.assign(nn, -1);
+  m.cluster_ref.assign(nn, -1);
   m.ncluster_nodes = 0;
   std::vector<int> root_of_node(nn, -1);   // cluster of a node in inertia form (leaves included)
   std::vector<char> grounded(nn, 0);       // contains the ground: no finite articulated inertia
+  std::vector<double> core_mass(nn, 0.0);  // mass of the inertia-form bodies (reference choice)
   for (int node = nn - 1; node >= 0; --node) {
     if (t.is_leaf(node)) {
       const int k = t.body[node];
       if (k > 0) root_of_node[node] = m.cluster_root[k];
       grounded[node] = k == 0;
+      m.cluster_ref[node] = k > 0 ? k : -1;
+      core_mass[node] = m.mass[k];
       continue;
     }
     grounded[node] = grounded[t.P[node]] || grounded[t.Q[node]];
     const int h = t.handle_num[node];
     if (h == 0) continue;
     const int R = m.cluster_root[t.attached_body(node, 0)];
-    bool same = R > 0 && cluster_size[R] >= 2;
+    // A body welded to the ground counts even alone: in inertia form its pin makes it exactly
+    // immovable, where the difference formula leaves a residual mobility ε·|Φ| (large at a far
+    // handle: 1e-6 at 10⁶ m, issue 14).
+    const bool welded_to_ground =
+        R > 0 && m.joint_type[R] == JointType::kFixed && m.parent[R] == 0;
+    bool same = R > 0 && (cluster_size[R] >= 2 || welded_to_ground);
     for (int x = 1; x < h && same; ++x) same = m.cluster_root[t.attached_body(node, x)] == R;
     if (!same) continue;
     const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
     Model::ClusterCase c = Model::ClusterCase::kNone;
     int pin = -1;
-    if (m.joint_type[J] == JointType::kFixed) {
+    if (t.is_leaf(P) && t.body[P] == 0 && J == R && root_of_node[Q] == R) {
+      c = Model::ClusterCase::kGroundPin;   // before the fixed merge: a fixed pin is a pin too
+      pin = J;
+    } else if (m.joint_type[J] == JointType::kFixed) {
       if (root_of_node[P] == R && root_of_node[Q] == R) c = Model::ClusterCase::kFixedMerge;
       pin = std::max(m.cluster_pin[P], m.cluster_pin[Q]);
-    } else if (t.is_leaf(P) && t.body[P] == 0 && J == R && root_of_node[Q] == R) {
-      c = Model::ClusterCase::kGroundPin;
-      pin = J;
     } else if (t.handle_num[P] == 1 && !grounded[P] && root_of_node[Q] == R) {
       c = Model::ClusterCase::kProjectP;
     } else if (t.handle_num[Q] == 1 && !grounded[Q] && root_of_node[P] == R) {
@@ -161,6 +171,14 @@ void classify_clusters(Model& m) {
     if (c == Model::ClusterCase::kNone) continue;
     if (c == Model::ClusterCase::kProjectP) pin = m.cluster_pin[Q];
     if (c == Model::ClusterCase::kProjectQ) pin = m.cluster_pin[P];
+    // Reference point: the inertia-form side's (the heavier one for a merge), so (M, p) sit at a
+    // body of the node near most of its mass, whatever the welds' lengths.
+    int ref_child = Q;
+    if (c == Model::ClusterCase::kFixedMerge) ref_child = core_mass[P] >= core_mass[Q] ? P : Q;
+    if (c == Model::ClusterCase::kProjectQ) ref_child = P;
+    m.cluster_ref[node] = m.cluster_ref[ref_child];
+    core_mass[node] = c == Model::ClusterCase::kFixedMerge ? core_mass[P] + core_mass[Q]
+                                                           : core_mass[ref_child];
     m.cluster_case[node] = c;
     m.cluster_pin[node] = pin;
     m.cluster_index[node] = m.ncluster_nodes++;

@@ -53,6 +53,10 @@ struct Model {
   std::vector<int> cluster_index;                   // (nnodes) slot in Data's cluster arrays, or -1
   std::vector<ClusterCase> cluster_case;            // (nnodes) how the node is assembled in inertia form
   std::vector<int> cluster_pin;                     // (nnodes) joint pinning the cluster to the ground, or -1
+  // Body whose origin is the reference point of a leaf or an inertia-form node's (M, p): the leaf's
+  // body; for a merge the reference of the heavier side. Never the cluster root as such: a weld far
+  // from its parent's frame would put every inertia of the far side at a far point (issue 14).
+  std::vector<int> cluster_ref;                     // (nnodes) body id, or -1
   int ncluster_nodes = 0;
   std::uint64_t fingerprint = 0;                    // hash of everything above (canonical order)
 

@@ -4,7 +4,10 @@
 //            semi-implicit Euler and/or RK4 (--integrator) over a short horizon and over --steps
 //            steps at several dt, halving dt below the list until a run survives --steps steps;
 //   far      q̈ of models placed 10^3 … 10^15 m from the origin against the same model at the origin
-//            (and what the world-origin long-double oracle does there);
+//            (and what the long-double oracle does there);
+//   welds    random models (every joint type, fixed roots, chains of welds, welded massive links,
+//            welds up to 1 km from their parent's frame) translated by 10^3/10^6 m and rotated;
+//   light    light bodies (smallest principal inertia / r) between normal ones: error vs bound;
 //   ratio    mass ratio 10^-k … 10^k between neighbouring links: error vs the long-double oracle;
 //   coaxial  aligned (coaxial) joint axes with a vanishing axial inertia: error vs the oracle;
 //   size     error vs the oracle as chains grow (n = 16 … --oracle-max-n);
@@ -19,6 +22,7 @@
 #include <chrono>
 #include <cstdio>
 
+#include "tests/stress/random_models.hpp"
 #include "tests/stress/stress_scenes.hpp"
 
 using namespace haptree;
@@ -141,7 +145,7 @@ void section_drift(const DriftSettings& cfg) {
 
 void section_far(double tol) {
   std::printf("\n## Far from the origin: q̈(model at distance D along (1,1,1)/sqrt3) vs q̈(same model at the origin)\n\n");
-  std::printf("| model | D [m] | rel diff DCA far vs near | DCA near vs oracle | world-origin oracle far vs near |\n|---|---|---|---|---|\n");
+  std::printf("| model | D [m] | rel diff DCA far vs near | DCA near vs oracle | oracle far vs near |\n|---|---|---|---|---|\n");
   const Vec3 dir = Vec3(1, 1, 1).normalized();
   struct Case { const char* name; int n; };
   for (Case c : {Case{"chain", 64}, Case{"binary_tree", 63}, Case{"protein_like", 857}}) {
@@ -162,6 +166,86 @@ void section_far(double tol) {
     }
     if (std::isnan(limit)) std::printf("\nLIMIT far/%s: DCA within %g of the near model up to 1e15 m\n\n", c.name, tol);
     else std::printf("\nLIMIT far/%s: DCA differs by more than %g at D = %g m\n\n", c.name, tol, limit);
+  }
+}
+
+// Random models with welds (tests/stress/random_models.hpp): every joint type, fixed roots with
+// inertia, chains of welds, welded massive links, welds far from their parent's frame; each model
+// translated by 10³ and 10⁶ m and rotated, against the model at the origin and the oracle.
+void section_welds(int models) {
+  std::printf("\n## Welds and far mounts: random models translated by up to 1e6 m and rotated\n\n");
+  std::printf("B = 10·n·ε·κ(H)·cancel is the error bound of tests/support/oracle.hpp. \"translated\" is the "
+              "worst difference to the model at the origin (pure translation), \"rotated\" with a random "
+              "rotation as well.\n\n");
+  std::printf("| weld length [m] | mass ratio | models | translated | rotated | vs oracle | max err/B | "
+              "max κ(H) | singular pivots |\n|---|---|---|---|---|---|---|---|---|\n");
+  for (double weld : {0.0, 30.0, 1e3}) {
+    for (double ratio : {1.0, 1e2, 1e3}) {
+      double wt = 0, wr = 0, wo = 0, wb = 0, wk = 0;
+      long pivots = 0;
+      for (int i = 0; i < models; ++i) {
+        std::mt19937 rng(1000 + i);
+        RandomModelOptions o;
+        o.n = 8 + i % 25;
+        o.fixed_fraction = std::vector<double>{0.0, 0.1, 0.3, 0.6}[i % 4];
+        o.mass_ratio = ratio;
+        o.weld_length = weld;
+        const auto spec = random_model_spec(rng, o);
+        const auto near = build_model(spec);
+        const State st = testing::random_state(*near, i + 1);
+        Data d0(*near);
+        const Eigen::VectorXd q0 = forward_dynamics(*near, d0, st);
+        for (int p = 0; p < 3; ++p) {
+          const Mat3 Rw = p == 2 ? random_rotation(rng) : Mat3::Identity();
+          const Vec3 t = (p == 0 ? 1e3 : 1e6) * random_direction(rng);
+          const auto far = build_model(placed(spec, Rw, t));
+          const State sf = rotated_state(*far, st, Rw);
+          Data d(*far);
+          forward_dynamics(*far, d, sf);
+          pivots += d.diag.singular_pivots;
+          const auto orc = oracle_forward_dynamics(*far, sf);
+          const double B = testing::qdd_error_bound(orc, sf, testing::kBoundC);
+          const double e0 = rel_err(d.qdd, q0), eo = rel_err(d.qdd, orc.qdd);
+          (p == 2 ? wr : wt) = std::max(p == 2 ? wr : wt, e0);
+          wo = std::max(wo, eo);
+          wb = std::max(wb, eo / B);
+          wk = std::max(wk, testing::mass_matrix_condition(orc));
+        }
+      }
+      std::printf("| %g | %g | %d | %.2e | %.2e | %.2e | %.2e | %.2e | %ld |\n", weld, ratio, models, wt,
+                  wr, wo, wb, wk, pivots);
+      std::fflush(stdout);
+    }
+  }
+}
+
+// Light bodies next to heavy ones (the Cα–H body of a torsion-angle protein: smallest principal
+// inertia ~1000× below its neighbours'): a 32-link chain whose every third link has its smallest
+// principal moment divided by r (and its mass by sqrt r), error vs the oracle and vs the bound.
+void section_light() {
+  std::printf("\n## Light bodies: every third link of a 32-link chain with its smallest principal inertia / r\n\n");
+  std::printf("| r | κ(H) | error vs oracle | err / B |\n|---|---|---|---|\n");
+  for (double r : {1.0, 1e1, 1e2, 1e3, 1e4, 1e6}) {
+    ModelBuilder b;
+    std::mt19937 rng(17);
+    int prev = 0;
+    for (int i = 1; i <= 32; ++i) {
+      const bool light = i % 3 == 0;
+      const double m = light ? 1.0 / std::sqrt(r) : 1.0, L = 0.3, w = 0.04;
+      Vec3 mom(2 * w * w, L * L + w * w, L * L + w * w);
+      mom *= m / 12;
+      if (light) mom.x() /= std::sqrt(r);   // with m / sqrt r: the smallest moment is / r
+      prev = b.add_body("l" + std::to_string(i), prev, JointType::kRevolute,
+                        prev == 0 ? Vec3::Zero() : Vec3(L, 0, 0), Mat3::Identity(), random_unit(rng), m,
+                        Vec3(L / 2, 0.01, 0), Mat3(mom.asDiagonal()));
+    }
+    auto model = b.build();
+    const State st = clean_state(*model, 3);
+    const auto orc = oracle_forward_dynamics(*model, st);
+    const double e = rel_err(dca(*model, st).qdd, orc.qdd);
+    std::printf("| %g | %.2e | %.2e | %.2e |\n", r, testing::mass_matrix_condition(orc), e,
+                e / testing::qdd_error_bound(orc, st, testing::kBoundC));
+    std::fflush(stdout);
   }
 }
 
@@ -265,11 +349,14 @@ void section_long(int max_log2, double tol) {
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree numerical stress report (markdown on stdout)"};
-  std::vector<std::string> sections{"drift", "far", "ratio", "coaxial", "size", "long"};
+  std::vector<std::string> sections{"drift", "far", "welds", "light", "ratio", "coaxial", "size", "long"};
+  int weld_models = 100;
   int ratio_n = 16, ratio_max_exp = 12, coaxial_n = 15, oracle_max_n = 1024, max_log2 = 18;
   DriftSettings drift;
   double tol = 1e-6;
-  app.add_option("--sections", sections, "drift far ratio coaxial size long")->capture_default_str();
+  app.add_option("--sections", sections, "drift far welds light ratio coaxial size long")->capture_default_str();
+  app.add_option("--weld-models", weld_models, "welds: random models per (weld length, mass ratio)")
+      ->capture_default_str()->check(CLI::Range(1, 100000));
   app.add_option("--steps", drift.steps, "drift: steps per dt")->capture_default_str();
   app.add_option("--dt-s", drift.dts, "drift: time steps [s]")->capture_default_str();
   app.add_option("--integrator", drift.integrators, "drift: euler (semi-implicit) and/or rk4")
@@ -301,6 +388,8 @@ int main(int argc, char** argv) {
     const auto t0 = Clock::now();
     if (s == "drift") section_drift(drift);
     else if (s == "far") section_far(tol);
+    else if (s == "welds") section_welds(weld_models);
+    else if (s == "light") section_light();
     else if (s == "ratio") section_ratio(ratio_n, ratio_max_exp, tol);
     else if (s == "coaxial") section_coaxial(coaxial_n, tol);
     else if (s == "size") section_size(oracle_max_n);

@@ -10,6 +10,8 @@
 #include <random>
 #include <set>
 
+#include <Eigen/Eigenvalues>
+
 #include "haptree/adaptive.hpp"
 #include "haptree/coupling.hpp"
 #include "haptree/dca.hpp"
@@ -125,9 +127,30 @@ struct Case {
 
 class CouplingVsFullPass : public ::testing::TestWithParam<Case> {};
 
+// The force bound above, from the oracle's H and the body inertias of `d` (after a pass).
+double force_error_bound(const Model& m, const Data& d, const State& st) {
+  double kI = 1;
+  for (int k = 1; k < m.nbodies; ++k) {
+    const Eigen::Matrix<double, 6, 1> ev = Eigen::SelfAdjointEigenSolver<Mat6>(d.I[k]).eigenvalues();
+    kI = std::max(kI, ev(5) / std::max(ev(0), 1e-16 * ev(5)));
+  }
+  const auto orc = oracle_forward_dynamics(m, st);
+  const double kH = testing::mass_matrix_condition(orc);
+  return testing::qdd_error_bound(orc, st, testing::kBoundC) * (m.nv + 6.0) / std::max(m.nv, 1) *
+         std::max(kH, kI) / kH;
+}
+
+// Tolerance (issue 14.3): f_feed and the full pass are two backward-stable solutions of one
+// system, so each is within B of the exact one and they differ by ≤ 2B, with
+// B = c·(n + 6)·ε·max(κ(H), κ_I)·cancel (tests/support/oracle.hpp): forces, unlike q̈, include the
+// constrained directions, whose systems are as conditioned as the bodies' spatial inertias
+// (κ_I = max_k κ(I_k) at r_k; 1e3 for a 0.3 × 0.04 m rod), and 6 more terms per force. B is
+// computed per model and state (star_200 mixed reduced: the former fixed 1e-10 failed at
+// 1.32e-10 on an AVX-512 Xeon). Errors are recorded as err/B; the line printed keeps the values.
 TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
   const Case c = GetParam();
   double worst_full = 0, worst_oracle = 0, worst_applied = 0, worst_requery = 0;
+  double worst_ratio = 0, bound_min = 1;
   int cases = 0;
   for (unsigned seed = 1; seed <= 2; ++seed) {
     SceneOptions o;
@@ -142,6 +165,8 @@ TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
     Data d(m);
     forward_dynamics(m, d, st);
     ASSERT_EQ(d.diag.singular_pivots, 0);
+    const double B = force_error_bound(m, d, st);
+    bound_min = std::min(bound_min, B);
     std::mt19937 rng(seed * 7919 + c.n);
     CouplingSnapshot snap, snap_applied;
     CouplingWorkspace ws;
@@ -158,7 +183,9 @@ TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
       ASSERT_EQ(coupling_forces(snap, fu.data(), ws, feed.data()), CouplingStatus::kOk);
       for (int g = 0; g < nf; ++g) {
         worst_full = std::max(worst_full, rel6(feed[g], ref.full[g]));
+        worst_ratio = std::max(worst_ratio, rel6(feed[g], ref.full[g]) / (2 * B));
         if (orc) worst_oracle = std::max(worst_oracle, rel6(feed[g], ref.oracle[g]));
+        if (orc) worst_ratio = std::max(worst_ratio, rel6(feed[g], ref.oracle[g]) / B);
       }
       // Nodes read: 2·depth+1 for one grab, |union of extended up-regions| for several.
       if (nf == 1) {
@@ -174,27 +201,31 @@ TEST_P(CouplingVsFullPass, SnapshotAloneMatchesFullPassAndOracle) {
       ws.reserve_for(snap_applied);
       std::vector<Vec6> feed2(nf);
       ASSERT_EQ(coupling_forces(snap_applied, fu.data(), ws, feed2.data()), CouplingStatus::kOk);
-      for (int g = 0; g < nf; ++g) worst_applied = std::max(worst_applied, rel6(feed2[g], ref.full[g]));
+      for (int g = 0; g < nf; ++g) {
+        worst_applied = std::max(worst_applied, rel6(feed2[g], ref.full[g]));
+        worst_ratio = std::max(worst_ratio, rel6(feed2[g], ref.full[g]) / (2 * B));
+      }
       // ... and re-queried with other forces it matches a full pass with those forces.
       const auto fu2 = random_forces(nf, rng, 20.0);
       const Reference ref2 = reference(m, st, grabs, fu2, false);
       ASSERT_EQ(coupling_forces(snap_applied, fu2.data(), ws, feed2.data()), CouplingStatus::kOk);
-      for (int g = 0; g < nf; ++g) worst_requery = std::max(worst_requery, rel6(feed2[g], ref2.full[g]));
+      for (int g = 0; g < nf; ++g) {
+        worst_requery = std::max(worst_requery, rel6(feed2[g], ref2.full[g]));
+        worst_ratio = std::max(worst_ratio, rel6(feed2[g], ref2.full[g]) / (2 * B));
+      }
       ++cases;
     }
   }
-  EXPECT_LE(worst_full, 1e-10) << c.scene;
-  EXPECT_LE(worst_applied, 1e-10) << c.scene;
-  EXPECT_LE(worst_requery, 1e-10) << c.scene;
-  if (c.oracle) {
-    EXPECT_LE(worst_oracle, 1e-10) << c.scene;
-  }
+  EXPECT_LE(worst_ratio, 1.0) << c.scene << " (error / derived bound; smallest bound "
+                              << bound_min << ")";
   RecordProperty("max_rel_err_full", std::to_string(worst_full));
   RecordProperty("max_rel_err_oracle", std::to_string(worst_oracle));
   RecordProperty("max_rel_err_applied", std::to_string(worst_applied));
   RecordProperty("max_rel_err_requery", std::to_string(worst_requery));
-  std::printf("[ coupling ] %s n=%d: full %.2e  oracle %.2e  applied %.2e  requery %.2e (%d grab sets)\n",
-              c.scene.c_str(), c.n, worst_full, worst_oracle, worst_applied, worst_requery, cases);
+  std::printf("[ coupling ] %s n=%d: full %.2e  oracle %.2e  applied %.2e  requery %.2e (%d grab sets)"
+              "  err/bound %.2e (bound ≥ %.1e)\n",
+              c.scene.c_str(), c.n, worst_full, worst_oracle, worst_applied, worst_requery, cases,
+              worst_ratio, bound_min);
 }
 
 INSTANTIATE_TEST_SUITE_P(
@@ -276,6 +307,7 @@ TEST(Coupling, SnapshotsOfA65536ChainHoldNoSubnormals) {
 // equal the hybrid pass with f_u applied and the oracle with the locked DOFs removed.
 TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
   double worst_full = 0, worst_oracle = 0, worst_applied = 0;
+  double hybrid_bound = 1;
   int rigid_siblings = 0;
   for (const char* scene : {"chain", "random_tree", "protein_like"}) {
     for (unsigned seed = 1; seed <= 2; ++seed) {
@@ -300,6 +332,11 @@ TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
         Data d(m);
         AdaptiveData ad(m);
         set_active_region(m, d, st, ad, active);   // zeroes q̇ of the locked joints
+        if (nf == 1) {
+          Data dk(m);
+          forward_dynamics(m, dk, st);
+          hybrid_bound = std::min(hybrid_bound, force_error_bound(m, dk, st));
+        }
         adaptive_forward_dynamics(m, d, st, ad);
         ASSERT_EQ(d.diag.singular_pivots, 0);
         std::uniform_real_distribution<double> u(-0.3, 0.3);
@@ -360,11 +397,15 @@ TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
     }
   }
   EXPECT_GT(rigid_siblings, 0);   // the test did exercise composite rigid siblings
-  EXPECT_LE(worst_full, 1e-10);
-  EXPECT_LE(worst_oracle, 1e-10);
-  EXPECT_LE(worst_applied, 1e-10);
-  std::printf("[ coupling ] hybrid: full %.2e  oracle %.2e  applied %.2e  (rigid siblings %d)\n",
-              worst_full, worst_oracle, worst_applied, rigid_siblings);
+  // Tolerance (issue 14.3): the force bound B of the full model (n, κ): the reduced system's
+  // data come from all bodies and ‖H_aa⁻¹‖ ≤ ‖H⁻¹‖ (interlacing, see
+  // tests/stress/origin_independence_test.cpp); the smallest B over the models is asserted.
+  EXPECT_LE(worst_full, 2 * hybrid_bound);
+  EXPECT_LE(worst_oracle, hybrid_bound);
+  EXPECT_LE(worst_applied, 2 * hybrid_bound);
+  std::printf("[ coupling ] hybrid: full %.2e  oracle %.2e  applied %.2e  (rigid siblings %d, "
+              "bound %.1e)\n", worst_full, worst_oracle, worst_applied, rigid_siblings,
+              hybrid_bound);
 }
 
 TEST(Coupling, LogarithmicRegionsOnBalancedChains) {

@@ -19,7 +19,9 @@ TEST(LongChain, Chain65536FiniteAndShiftInvariant) {
   auto shifted = scene_at("chain", n, Vec3(1e3, -2e3, 5e2));
   const auto b = dca(*shifted, st);
   ASSERT_TRUE(all_finite(b.qdd));
-  EXPECT_LE(testing::rel_err(b.qdd, a.qdd), 1e-12);
+  // A translation changes no number the DCA uses (offsets are local): bit-identical but for
+  // reordered sums (1e-14).
+  EXPECT_LE(testing::rel_err(b.qdd, a.qdd), 1e-14);
   // A second evaluation of the same model is bit-identical (no hidden state in Data).
   EXPECT_EQ(dca(*m, st).qdd, a.qdd);
 }

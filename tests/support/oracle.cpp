@@ -2,6 +2,8 @@
 
 #include <random>
 
+#include <Eigen/Eigenvalues>
+
 namespace haptree::testing {
 
 namespace {
@@ -53,11 +55,16 @@ OracleResult oracle_forward_dynamics(const Model& m, const State& st,
   std::vector<M6> I(nb, M6::Zero());
   std::vector<V6> v(nb, V6::Zero()), a(nb, V6::Zero()), f(nb, V6::Zero());
   const V3 g = m.gravity.cast<LD>();
+  // Coordinates about o = body 1's joint point instead of the world origin: a model translated by
+  // D keeps its positions relative to o exactly (offset − o of two doubles is exact in long
+  // double), so the oracle's own error does not grow like (D/L)²·ε_LD (1e-5 at 10⁶ m, issue 14).
+  const V3 o = nb > 1 ? V3(m.joint_offset[1].cast<LD>()) : V3(V3::Zero());
 
   for (int k = 1; k < nb; ++k) {
     const int par = m.parent[k], qa = m.q_adr[k];
     const M3 Rj = R[par] * m.joint_rotation[k].cast<LD>();
     V3 local = m.joint_offset[k].cast<LD>();
+    if (par == 0) local -= o;   // the ground's frame is the world's (R_0 = 1)
     const V3 ax = m.joint_axis[k].cast<LD>();
     switch (m.joint_type[k]) {
       case JointType::kRevolute: R[k] = Rj * axis_angle(ax, (LD)st.q(qa)); break;
@@ -115,7 +122,7 @@ OracleResult oracle_forward_dynamics(const Model& m, const State& st,
     v[k] = v[par] + sq;
     cJ[k] = vx(v[k], sq);
     a[k] = a[par] + cJ[k];
-    // External force given at r_k = p_k with world axes → at the origin.
+    // External force given at r_k = p_k with world axes → at o.
     const V6 fe = st.f_ext[k].cast<LD>();
     V6 fe0;
     fe0 << fe.template head<3>() + p[k].cross(fe.template tail<3>()), fe.template tail<3>();
@@ -178,9 +185,50 @@ OracleResult oracle_forward_dynamics(const Model& m, const State& st,
     at << acc[k].template head<3>(),
         acc[k].template tail<3>() + acc[k].template head<3>().cross(p[k]);
     out.body_acc[k] = at.cast<double>();
-    out.r[k] = p[k].cast<double>();
+    out.r[k] = (p[k] + o).cast<double>();
   }
   return out;
+}
+
+namespace {
+std::vector<int> free_dofs(int nv, const std::vector<bool>& locked) {
+  std::vector<int> f;
+  for (int i = 0; i < nv; ++i)
+    if (locked.empty() || !locked[i]) f.push_back(i);
+  return f;
+}
+}  // namespace
+
+double mass_matrix_condition(const OracleResult& r, const std::vector<bool>& locked) {
+  const auto f = free_dofs(static_cast<int>(r.H.rows()), locked);
+  const int n = static_cast<int>(f.size());
+  if (n == 0) return 1;
+  Eigen::MatrixXd Hf(n, n);
+  for (int x = 0; x < n; ++x)
+    for (int y = 0; y < n; ++y) Hf(x, y) = static_cast<double>(r.H(f[x], f[y]));
+  const Eigen::VectorXd ev = Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(Hf).eigenvalues();
+  // The smallest eigenvalue from a double eigensolver is good to ~ε·λ_max: clamp there.
+  return ev(n - 1) / std::max(ev(0), ev(n - 1) * 1e-16);
+}
+
+double qdd_error_bound(const OracleResult& r, const State& st, double c,
+                       const std::vector<bool>& locked) {
+  const auto f = free_dofs(static_cast<int>(r.H.rows()), locked);
+  LD tn = 0, cn = 0, dn = 0;
+  for (int i : f) {
+    const LD t = st.tau(i), cc = r.C(i);
+    tn += t * t;
+    cn += cc * cc;
+    dn += (t - cc) * (t - cc);
+  }
+  const double cancel =
+      dn > 0 ? static_cast<double>((std::sqrt(tn) + std::sqrt(cn)) / std::sqrt(dn)) : 1.0;
+  return c * static_cast<double>(std::max<std::size_t>(f.size(), 1)) * kEps *
+         mass_matrix_condition(r, locked) * std::max(1.0, cancel);
+}
+
+double dca_error_bound(const Model& m, const State& st, double c, const std::vector<bool>& locked) {
+  return qdd_error_bound(oracle_forward_dynamics(m, st, locked), st, c, locked);
 }
 
 double rel_err(const Eigen::VectorXd& a, const Eigen::VectorXd& b, double floor) {

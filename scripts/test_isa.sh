@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# Builds and runs the test suite at three x86-64 ISA levels, each in its own build directory:
+#   generic  build-generic  -DHAPTREE_NATIVE=OFF        (baseline x86-64: SSE2, no FMA)
+#   v3       build-v3       -DHAPTREE_MARCH=x86-64-v3   (AVX2 + FMA)
+#   native   build-native   -DHAPTREE_NATIVE=ON         (-march=native of this machine)
+# Floating-point results differ between them (vector width, FMA contraction), so a tolerance that
+# holds on only one of them is caught here. ccache is used when installed.
+#
+# Usage: bash scripts/test_isa.sh [--configs "generic v3 native"] [--label-regex REGEX]
+#                                 [--targets "T1 T2 ..."] [--numerics] [--build-only] [--jobs N]
+#   --label-regex  run only tests whose CTest labels match (e.g. "unit|oracle|stress")
+#   --targets      build only these targets (default: everything)
+#   --numerics     the numerical suite only: the unit, oracle and stress test programs, labels
+#                  "unit|oracle|stress" (a fraction of the full build on a busy 2-core machine)
+# Prints one line per configuration and exits non-zero if any configuration failed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+configs="generic v3 native"
+labels=""
+build_only=0
+targets=""
+jobs=${HAPTREE_JOBS:-$(nproc)}
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --configs) configs="$2"; shift 2 ;;
+    --label-regex) labels="$2"; shift 2 ;;
+    --build-only) build_only=1; shift ;;
+    --targets) targets="$2"; shift 2 ;;
+    --numerics)
+      targets="core_dca_test core_tree_test core_alloc_test core_adaptive_test core_coupling_test
+               core_integrator_test stress_energy_test stress_far_origin_test stress_singular_test
+               stress_long_chain_test stress_passivity_test stress_adaptive_switching_test
+               stress_origin_test io_urdf_test io_mujoco_test io_fd_cli_test haptree_fd"
+      labels="unit|oracle|stress"; shift ;;
+    --jobs) jobs="$2"; shift 2 ;;
+    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    *) echo "test_isa.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
+  esac
+done
+launcher=()
+if command -v ccache > /dev/null; then launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache); fi
+summary=()
+status=0
+for c in $configs; do
+  case "$c" in
+    generic) flags=(-DHAPTREE_NATIVE=OFF -DHAPTREE_MARCH=) ;;
+    v3) flags=(-DHAPTREE_MARCH=x86-64-v3) ;;
+    native) flags=(-DHAPTREE_NATIVE=ON -DHAPTREE_MARCH=) ;;
+    *) echo "test_isa.sh: unknown configuration '$c' (generic, v3, native)" >&2; exit 2 ;;
+  esac
+  dir="build-$c"
+  echo "== $c: configure and build in $dir"
+  mkdir -p "$dir"
+  cmake -S . -B "$dir" -DCMAKE_BUILD_TYPE=Release "${launcher[@]}" "${flags[@]}" \
+    > "$dir/test_isa.configure.log" 2>&1 || { cat "$dir/test_isa.configure.log"; exit 1; }
+  tgt=()
+  for x in $targets; do tgt+=(--target "$x"); done
+  if ! cmake --build "$dir" -j "$jobs" "${tgt[@]}" > "$dir/test_isa.build.log" 2>&1; then
+    tail -30 "$dir/test_isa.build.log"
+    summary+=("$c: BUILD FAILED (see $dir/test_isa.build.log)")
+    status=1
+    continue
+  fi
+  [ "$build_only" = 1 ] && { summary+=("$c: built"); continue; }
+  args=(--output-on-failure -j "$jobs" --timeout 900)
+  [ -n "$labels" ] && args+=(-L "$labels")
+  echo "== $c: ctest ${labels:+-L \"$labels\"}"
+  if (cd "$dir" && ctest "${args[@]}") > "$dir/test_isa.ctest.log" 2>&1; then r=ok; else r=FAILED; status=1; fi
+  line=$(grep -E "tests passed|tests failed" "$dir/test_isa.ctest.log" | tail -1)
+  summary+=("$c ($(grep -m1 -o -- '-march=[^ ]*' "$dir/compile_commands.json" || echo 'no -march')): $r: $line")
+  [ "$r" = FAILED ] && grep -E "\(Failed\)|\(Timeout\)|\*\*\*" "$dir/test_isa.ctest.log" | head -20 || true
+done
+echo "== summary"
+printf '%s\n' "${summary[@]}"
+exit $status
