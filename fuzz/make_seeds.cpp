@@ -50,7 +50,7 @@ lcmt_coupling_snapshot snapshot_of(const std::string& scene, int n, const std::v
   make_coupling_snapshot(m, d, grabs, {}, 42, 0.125, snap);
   lcmt_coupling_snapshot msg;
   bus::to_lcmt(snap, msg);
-  bus::stamp(msg, 1700000000000000);
+  bus::stamp(msg, 1, 1700000000000000);
   msg.user_id = 0;
   return msg;
 }
@@ -74,7 +74,7 @@ int main(int argc, char** argv) {
     write(lcm, "coupling_snapshot_chain4", 0, s1);
 
     lcmt_device_state ds{};
-    bus::stamp(ds, 1700000000000001);
+    bus::stamp(ds, 1, 1700000000000001);
     ds.seq = 7;
     ds.device_id = 0;
     ds.position_m[0] = 0.01;
@@ -84,7 +84,7 @@ int main(int argc, char** argv) {
     write(lcm, "device_state", 1, ds);
 
     lcmt_feedback fb{};
-    bus::stamp(fb, 1700000000000002);
+    bus::stamp(fb, 1, 1700000000000002);
     fb.seq = 9;
     fb.echo_device_seq = 7;
     fb.snapshot_version = 42;
@@ -93,7 +93,7 @@ int main(int argc, char** argv) {
     write(lcm, "feedback", 2, fb);
 
     lcmt_process_stats ps{};
-    bus::stamp(ps, 1700000000000003);
+    bus::stamp(ps, 1, 1700000000000003);
     ps.seq = 3;
     ps.process_name = "coupler";
     ps.loop_rate_hz = 10000;
@@ -104,7 +104,7 @@ int main(int argc, char** argv) {
     write(lcm, "process_stats", 3, ps);
 
     lcmt_scene_state ss{};
-    bus::stamp(ss, 1700000000000004);
+    bus::stamp(ss, 1, 1700000000000004);
     ss.version = 42;
     ss.sim_time = 0.125;
     ss.nbodies = 2;
@@ -114,7 +114,7 @@ int main(int argc, char** argv) {
     write(lcm, "scene_state", 4, ss);
 
     lcmt_user_force uf{};
-    bus::stamp(uf, 1700000000000005);
+    bus::stamp(uf, 1, 1700000000000005);
     uf.seq = 11;
     uf.grab_body = 4;
     uf.grab_point[0] = 0.3;

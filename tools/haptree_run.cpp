@@ -247,6 +247,8 @@ int main(int argc, char** argv) {
     for (auto& c : couplers) threads.emplace_back([&stop, p = c.get()] { p->run(stop); });
     for (auto& b : bridges) threads.emplace_back([&stop, p = b.get()] { p->run(stop); });
     if (viewer) threads.emplace_back([&stop, p = viewer.get()] { p->run(stop); });
+    std::thread imd_thread;   // IMD: its own thread, joined with the others
+    if (imd_server) imd_thread = std::thread([&] { imd_server->run(stop); });
     const auto t0 = std::chrono::steady_clock::now();
     double max_force = 0, max_rate = 0, sum_step_ms = 0;
     int lines = 0;

@@ -49,7 +49,7 @@ TEST(KeyedUdpm, StrangersOtherKeysReplaysAndTamperingAreDroppedAndCounted) {
           },
           &wire);
       lcmt_user_force m{};
-      stamp(m);
+      stamp(m, 1);
       m.active = true;
       auto pump = [&] {
         const auto until = std::chrono::steady_clock::now() + 300ms;

@@ -46,7 +46,7 @@ std::vector<uint8_t> sealed(Authenticator& a, const std::string& channel, const 
 
 lcmt_user_force user_force(int64_t seq, double fz) {
   lcmt_user_force m{};
-  stamp(m);
+  stamp(m, 1);
   m.seq = seq;
   m.grab_body = 3;
   m.force[5] = fz;
@@ -188,7 +188,7 @@ TEST(KeyedBus, RejectsAStrangersUserForceAndSnapshotAcceptsThePeers) {
     }
   };
   lcmt_coupling_snapshot snap{};
-  stamp(snap);
+  stamp(snap, 1);
   snap.version = 9;
   inject(ch_uf, encode(user_force(1, 100.0)));          // unkeyed stranger
   inject(ch_snap, encode(snap));
@@ -238,7 +238,7 @@ TEST(KeyedShm, ReaderRejectsUnkeyedAndOtherKeyWritersAndReplays) {
   reader.set_session_key(session_key_from_bytes(kKeyA));
   ShmWriter writer(ch);
   lcmt_feedback fb{};
-  stamp(fb);
+  stamp(fb, 1);
   fb.force_n[0] = 1.25;
   lcmt_feedback got{};
   writer.set_session_key(nullptr);   // stranger: unkeyed
