@@ -108,6 +108,8 @@ int main(int argc, char** argv) {
     ss.version = 42;
     ss.sim_time = 0.125;
     ss.nbodies = 2;
+    ss.body_active.assign(ss.nbodies, 0);
+    ss.total_bodies = ss.nbodies;
     ss.body_position = {{0, 0, 0}, {0.1, 0.2, 0.3}};
     ss.body_orientation = {{1, 0, 0, 0}, {0, 1, 0, 0}};
     ss.active_dofs = 12;

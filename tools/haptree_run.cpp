@@ -166,6 +166,7 @@ int main(int argc, char** argv) {
     so.users = users + 1;
     imd.user_id = users;
     imd.scene = so.scene;
+    so.max_user_force = std::max(so.max_user_force, imd.max_force);   // the IMD pull has its own clamp
   }
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
@@ -217,6 +218,11 @@ int main(int argc, char** argv) {
       co.max_force_n = max_force_n;
       co.grab_body = b;
       co.offset = d0.r[b] - position_scale * grab_m;
+      // A page's pointer may reach any atom (the browser device inverts the mapping): the glitch limit on
+      // device positions covers twice the scene's reach from the grabbed body, at least the 1 m default.
+      double reach = 0;
+      for (int k = 1; k < model.nbodies; ++k) reach = std::max(reach, (d0.r[k] - d0.r[b]).norm());
+      co.max_device_position_m = std::min(1e3, std::max(co.max_device_position_m, 2.0 * reach / position_scale));
       co.model_fingerprint = model.fingerprint;   // refuse any other model on the bus
       co.stale_after_s = stale_after_s;
       couplers.push_back(std::make_unique<haptree::Coupler>(bus, co));

@@ -268,6 +268,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     // The model (for the pulled bodies and the device offsets): the scene loaded exactly as the server will.
     std::vector<int> bodies;
     std::vector<Vec3> offsets;
+  std::vector<double> reaches;   // coupler --max-device-position-m per user
     int nbodies = 0, nv = 0;
     uint64_t fingerprint = 0;
     {
@@ -285,6 +286,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
         const int b = std::max(1, (model.nbodies - 1) - u * (model.nbodies - 1) / (se.users + 1));
         bodies.push_back(b);
         offsets.push_back(d0.r[b] - se.position_scale * grab_m);
+        double reach = 0;   // a page's pointer may reach any atom: see haptree_run.cpp
+        for (int k = 1; k < model.nbodies; ++k) reach = std::max(reach, (d0.r[k] - d0.r[b]).norm());
+        reaches.push_back(std::min(1e3, std::max(1.0, 2.0 * reach / se.position_scale)));
       }
     }
     // A suffix of its own: the shared-memory segments and channels of two launchers never mix.
@@ -350,7 +354,8 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              fmt_d(se.force_scale), "--max-force-n", fmt_d(se.max_force_n), "--grab-body",
                              std::to_string(bodies[static_cast<size_t>(u)]), "--model-fingerprint",
                              fmt::format("{:016x}", fingerprint), "--stale-after-s", fmt_d(se.stale_after_s),
-                             "--offset", fmt_d(o.x()), fmt_d(o.y()), fmt_d(o.z())});
+                             "--offset", fmt_d(o.x()), fmt_d(o.y()), fmt_d(o.z()), "--max-device-position-m",
+                             fmt_d(reaches[static_cast<size_t>(u)])});
       if (shm) cpl.push_back("--shm");
       const std::string cu = "coupler_" + std::to_string(u);
       children.push_back({cu, log_dir + "/" + cu + ".log"});

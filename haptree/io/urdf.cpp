@@ -250,6 +250,7 @@ void check_joint_tree(const TiXmlDocument& doc, const std::string& source) {
   const TiXmlElement* robot = doc.FirstChildElement("robot");
   if (!robot) return;   // urdfdom reports a missing <robot>
   std::map<std::string, std::string> parent_of;   // child link -> parent link
+  std::map<std::string, std::string> joint_of;    // child link -> its parent joint
   for (const TiXmlElement* j = robot->FirstChildElement("joint"); j; j = j->NextSiblingElement("joint")) {
     const TiXmlElement* p = j->FirstChildElement("parent");
     const TiXmlElement* c = j->FirstChildElement("child");
@@ -261,8 +262,10 @@ void check_joint_tree(const TiXmlDocument& doc, const std::string& source) {
     if (std::string(pl) == cl) throw UrdfError(where + "link '" + cl + "' is its own parent");
     const auto [it, fresh] = parent_of.emplace(cl, pl);
     if (!fresh)
-      throw UrdfError(where + "link '" + cl + "' already has parent link '" + it->second +
-                      "' (a URDF is a tree: one parent joint per link)");
+      throw UrdfError(where + "link '" + cl + "' already has parent link '" + it->second + "': link '" + cl +
+                      "' has two parents: '" + it->second + "' (joint '" + joint_of[cl] + "') and '" + pl +
+                      "' (joint '" + (jn ? jn : "") + "') (a URDF is a tree: one parent joint per link)");
+    joint_of[cl] = jn ? jn : "";
   }
   for (const auto& entry : parent_of) {   // walk up from every link; more steps than joints = a cycle
     const std::string* link = &entry.first;

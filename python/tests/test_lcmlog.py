@@ -39,7 +39,7 @@ def session_log(tmp_path_factory):
 ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo
 lcm-logger --lcm-url='{URL}' -f -q '{log}' & L=$!
 sleep 0.3
-'{run}' --lcm-url '{URL}' --duration-s 1.5 --users {USERS} {opts}
+'{run}' --viewer-port 0 --lcm-url '{URL}' --duration-s 1.5 --users {USERS} {opts}
 sleep 0.2
 kill -INT $L; wait $L
 """

@@ -258,7 +258,7 @@ TEST(KeyedShm, ReaderRejectsUnkeyedAndOtherKeyWritersAndReplays) {
   Authenticator old_peer(session_key_from_bytes(kKeyA));
   bytes.resize(n + kAuthTrailerBytes);
   old_peer.seal(ch, bytes.data(), n);
-  ShmWriter raw(ch);
+  ShmWriter& raw = writer;   // one live writer per channel (shm_channel.hpp): the same writer, unkeyed
   raw.set_session_key(nullptr);
   ASSERT_TRUE(raw.write(bytes.data(), bytes.size()));
   ASSERT_EQ(reader.read_msg(got), ShmRead::kNew);

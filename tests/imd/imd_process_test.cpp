@@ -70,7 +70,8 @@ TEST(ImdProcesses, ImdBridgeBesideSimServerServesAndPulls) {
   const std::string sim_log = dir + "imd_proc_sim.log", imd_log = dir + "imd_proc_bridge.log";
   // The IMD pull is user 0 here (no haptic user): sim_server listens to users 0..--users-1.
   const pid_t sim = testing::spawn_logged({HAPTREE_SIM_SERVER, "--lcm-url", url, "--scene", "ala20", "--dt", "0.0005",
-                                           "--rate-hz", "2000", "--display-rate-hz", "100", "--users", "1"},
+                                           "--rate-hz", "2000", "--display-rate-hz", "100", "--users", "1",
+                                           "--max-user-force", "5000"},
                                           sim_log);
   const pid_t imd = testing::spawn_logged({HAPTREE_IMD_BRIDGE, "--lcm-url", url, "--scene", "ala20", "--port",
                                            std::to_string(port), "--user-id", "0", "--imd-version", "3"},
@@ -112,7 +113,7 @@ TEST(ImdProcesses, ImdBridgeBesideSimServerServesAndPulls) {
 TEST(ImdProcesses, HaptreeRunImdPortServesTheEmbeddedSession) {
   const int port = free_port();
   const std::string log = ::testing::TempDir() + "imd_haptree_run.log";
-  const pid_t run = testing::spawn_logged({HAPTREE_RUN, "--scene", "ala20", "--dt", "0.0005", "--position-scale", "1",
+  const pid_t run = testing::spawn_logged({HAPTREE_RUN, "--viewer-port", "0", "--scene", "ala20", "--dt", "0.0005", "--position-scale", "1",
                                            "--stiffness", "200", "--duration-s", "4", "--imd-port",
                                            std::to_string(port), "--imd-version", "3"},
                                           log);

@@ -191,6 +191,9 @@ struct Fixture {
     s.version = version;
     s.sim_time = t;
     s.nbodies = m.nbodies;
+    s.body_active.assign(s.nbodies, 0);
+    s.first_body = 0;
+    s.total_bodies = s.nbodies;
     for (int k = 0; k < m.nbodies; ++k) {
       s.body_position.push_back({d.r[k].x(), d.r[k].y(), d.r[k].z()});
       const Quat qk(d.R[k]);
@@ -454,6 +457,7 @@ struct Session {
     so.rate_hz = 4000;
     so.display_rate_hz = 100;
     so.users = 1;
+    so.max_user_force = 5000;   // the IMD pull's own clamp (ImdServerOptions::max_force): the server must not cut it
     sim = std::make_unique<SimServer>(bus, so);
     o.port = 0;
     o.scene = "ala20";

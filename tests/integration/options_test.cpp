@@ -99,8 +99,9 @@ TEST(Options, OutOfRangeValuesAreRefusedInPlainWords) {
 TEST(Options, SigtermStopsEveryLoopPromptly) {
   const std::string dir = ::testing::TempDir();
   const std::vector<std::vector<std::string>> procs = {
-      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1"},
-      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1", "--sleep"},
+      // --clamp-gains: at 1 Hz the default stiffness exceeds the passivity bound 2b/T (device_info.hpp)
+      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1", "--clamp-gains"},
+      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1", "--sleep", "--clamp-gains"},
       {HAPTREE_DEVICE_BRIDGE, "--lcm-url", "memq://", "--rate-hz", "1"},
       {HAPTREE_SIM_SERVER, "--lcm-url", "memq://", "--scene", "chain", "--n", "8", "--rate-hz", "1"},
   };

@@ -114,7 +114,7 @@ TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
 template <class Act>
 int launcher_session(const std::string& name, double duration_s, Act act) {
   const std::string dir = ::testing::TempDir() + "haptree_run_" + name;
-  const pid_t p = testing::spawn_logged({HAPTREE_RUN, "--processes", "--duration-s", std::to_string(duration_s),
+  const pid_t p = testing::spawn_logged({HAPTREE_RUN, "--processes", "--viewer-port", "0", "--duration-s", std::to_string(duration_s),
                                          "--scene", "protein_like", "--n", "32", "--log-dir", dir},
                                         ::testing::TempDir() + "haptree_run_" + name + ".log");
   if (p <= 0) return -1;

@@ -250,6 +250,9 @@ TEST(TrajectoryFromLog, MoleculeAtomsFromLoggedPoses) {
       s.version = 1 + 50 * i;     // a state every 50 steps
       s.sim_time = 0.0005 * s.version;
       s.nbodies = sc.model->nbodies;
+      s.body_active.assign(s.nbodies, 0);
+      s.first_body = 0;
+      s.total_bodies = s.nbodies;
       for (int k = 0; k < s.nbodies; ++k) {
         s.body_position.push_back({d.r[k].x(), d.r[k].y(), d.r[k].z()});
         const Quat q(d.R[k]);
