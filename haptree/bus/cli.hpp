@@ -4,6 +4,8 @@
 
 #include <CLI/CLI.hpp>
 
+#include "haptree/bus/shm_channel.hpp"
+
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -67,7 +69,10 @@ inline void add_bus_options(CLI::App& app, BusOptions& o, bool shm_link = true, 
 // SIGINT/SIGTERM set the returned flag, which the process's run loop polls.
 inline std::atomic<bool>& install_stop_signals() {
   static std::atomic<bool> stop{false};
-  auto on_signal = [](int) { stop = true; };
+  auto on_signal = [](int) {
+    stop = true;
+    unlink_own_shm_segments();   // issue 11, defect 8: nothing left even if a loop is slow to stop
+  };
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   return stop;

@@ -12,6 +12,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <algorithm>
 #include <cstring>
 #include <ctime>
 #include <stdexcept>
@@ -181,6 +182,30 @@ bool ShmChannel::remove(const std::string& channel) {
   return ::shm_unlink(shm_segment_name(channel).c_str()) == 0;
 }
 
+namespace {
+// Names of this process's writer segments, in fixed buffers, so a signal handler can unlink them
+// (shm_unlink is an unlink(2) of /dev/shm/NAME): a child stuck on its bus at SIGTERM leaves nothing.
+constexpr int kMaxOwnedSegments = 64;
+char g_owned[kMaxOwnedSegments][256];
+std::atomic<int> g_owned_count{0};
+void own_segment(const std::string& name) noexcept {
+  const int i = g_owned_count.fetch_add(1);
+  if (i >= kMaxOwnedSegments || name.size() >= sizeof g_owned[0]) return;
+  std::memcpy(g_owned[i], name.c_str(), name.size() + 1);
+}
+void disown_segment(const std::string& name) noexcept {
+  const int n = std::min(g_owned_count.load(), kMaxOwnedSegments);
+  for (int i = 0; i < n; ++i)
+    if (name == g_owned[i]) g_owned[i][0] = 0;
+}
+}  // namespace
+
+void unlink_own_shm_segments() noexcept {
+  const int n = std::min(g_owned_count.load(), kMaxOwnedSegments);
+  for (int i = 0; i < n; ++i)
+    if (g_owned[i][0] != 0) ::shm_unlink(g_owned[i]);
+}
+
 ShmWriter::ShmWriter(const std::string& channel) : ShmChannel(channel) {
   for (const auto& r : reclaim_stale_shm_segments()) reclaimed_ |= r.rfind(name_ + " (", 0) == 0;
   const size_t bytes = sizeof(ShmSegment);
@@ -252,10 +277,12 @@ ShmWriter::ShmWriter(const std::string& channel) : ShmChannel(channel) {
   h.writer_start_ns.store(shm_now_ns());
   h.writer_closed.store(0);
   h.magic.store(detail::kShmMagic, std::memory_order_release);
+  own_segment(name_);
 }
 
 ShmWriter::~ShmWriter() {
   if (!seg_) return;
+  disown_segment(name_);
   seg_->header.writer_closed.store(1, std::memory_order_release);
   // Unlink only our own segment: a successor may already have replaced the name.
   struct stat st {};

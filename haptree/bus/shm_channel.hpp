@@ -78,6 +78,10 @@ class ShmChannel {
   size_t seal(uint8_t* msg, size_t size) noexcept { return auth_ ? auth_->seal(channel_, msg, size) : size; }
 };
 
+// Unlinks the segments of this process's live writers; async-signal-safe (the processes' SIGTERM/SIGINT
+// handler calls it, so a child that cannot stop promptly still leaves no segment behind).
+void unlink_own_shm_segments() noexcept;
+
 class ShmWriter : public ShmChannel {
  public:
   // Creates the segment (reclaiming one whose writer is dead or closed). Throws std::runtime_error if a
