@@ -176,6 +176,9 @@ def main():
         fs = launcher.forces_since(1, t_drag)
         check(any(f > 0 for f in fs), f"nonzero feedback force for user 1 in the session's status lines {fs}")
         check(all(f <= MAX_FORCE_N + 1e-9 for f in fs), f"clamped to {MAX_FORCE_N} N {fs}")
+        # The page shows the newest |f| of its frames (≈ 8 frames/s here); the coupler's watchdog may zero
+        # it for a moment on a loaded machine, so wait for a frame that carries the pull, then check it.
+        wait_for("tab B to show a nonzero force", lambda: float(ds(b, "forceN") or 0) > 0, 20)
         fn = float(ds(b, "forceN") or 0)
         check(0 < fn <= MAX_FORCE_N + 1e-9, f"dataset.forceN {fn} in (0, {MAX_FORCE_N}]")
         shot = os.path.join(out_dir, f"viewer_pull_{tag}.png")
