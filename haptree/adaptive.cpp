@@ -52,6 +52,14 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   Psi_buf.assign(phi, 0.0);
   p_buf.assign(vec, 0.0);
   eta.assign(nn, 0.0);
+  Phi_loc.assign(phi, 0.0);
+  Psi_loc.assign(phi, 0.0);
+  W_loc.assign(nn, Mat6::Zero());
+  q_cached = Eigen::VectorXd::Zero(m.nq);
+  node_moved.assign(nn, 1);
+  world_ok.assign(nn, 0);
+  scratch_joint_moved.assign(nb, 0);
+  scratch_f.assign(std::max(1, t.max_handles), Vec6::Zero());
   active_nodes.reserve(nn);
   frontier.reserve(nn);
   active_joints.reserve(nb);
@@ -74,14 +82,17 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
 // injects C's P-slots and carries −K at slot j (f_c = K f^C + β), MQ likewise with +K at slot k.
 // Ψ_C = MPᵀΨ_P MP + MQᵀΨ_Q MQ + V_Jᵀ D Dᵀ V_J is formed block by block (6×6, no allocation):
 // MP is an injection plus one block row, so only the blocks it touches are multiplied.
-void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
+namespace {
+
+// One node of compute_metric_coefficients (children done).
+void metric_node(const Model& m, const Data& d, AdaptiveData& ad, int node) {
   const auto& t = m.tree;
   auto psi = [&](int node, int h, int a, int b) {
     return BlockMap(ad.Psi_buf.data() + d.Phi_adr[node] + 6 * a + 36 * h * b,
                     Eigen::OuterStride<>(6 * h));
   };
   auto pv = [&](int node, int slot) { return VecMap(ad.p_buf.data() + d.vec_adr[node] + 6 * slot); };
-  for (int node = t.nnodes() - 1; node >= 0; --node) {
+  {
     const int hC = t.handle_num[node];
     if (t.is_leaf(node)) {
       ad.eta[node] = 0;
@@ -89,7 +100,7 @@ void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad
         for (int y = 0; y < hC; ++y) psi(node, hC, x, y).setZero();
         pv(node, x).setZero();
       }
-      continue;
+      return;
     }
     const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
     const int j = t.slot_j[node], k = t.slot_k[node];
@@ -171,6 +182,12 @@ void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad
   }
 }
 
+}  // namespace
+
+void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
+  for (int node = m.tree.nnodes() - 1; node >= 0; --node) metric_node(m, d, ad, node);
+}
+
 double metric_value(const Model& m, const AdaptiveData& ad, int node, const double* f) {
   const int h = m.tree.handle_num[node];
   if (m.tree.is_leaf(node)) return 0;
@@ -187,12 +204,244 @@ double metric_value(const Model& m, const AdaptiveData& ad, int node, const doub
 
 namespace {
 
-double metric_at(const Model& m, const Data& d, const AdaptiveData& ad, int node) {
-  const int h = m.tree.handle_num[node];
-  const CMatMap Psi(ad.Psi_buf.data() + d.Phi_adr[node], 6 * h, 6 * h);
-  const Eigen::Map<const VecX> p(ad.p_buf.data() + d.vec_adr[node], 6 * h);
-  const Eigen::Map<const VecX> f(d.f_buf.data() + d.vec_adr[node], 6 * h);
-  return f.dot(Psi * f) + f.dot(p) + ad.eta[node];
+// blockdiag(R, R) x and its transpose.
+inline Vec6 rot6(const Mat3& R, const Vec6& x) {
+  Vec6 y;
+  y.head<3>().noalias() = R * x.head<3>();
+  y.tail<3>().noalias() = R * x.tail<3>();
+  return y;
+}
+inline Vec6 rot6t(const Mat3& R, const Vec6& x) {
+  Vec6 y;
+  y.head<3>().noalias() = R.transpose() * x.head<3>();
+  y.tail<3>().noalias() = R.transpose() * x.tail<3>();
+  return y;
+}
+
+// Every 3×3 block of an n6×n6 column-major matrix: dst = Rᵀ src R (to_local) or R src Rᵀ.
+void rotate_blocks(const Mat3& R, const double* src, double* dst, int n6, bool to_local) {
+  using CM3 = Eigen::Map<const Mat3, 0, Eigen::OuterStride<>>;
+  using M3 = Eigen::Map<Mat3, 0, Eigen::OuterStride<>>;
+  const int n3 = n6 / 3;
+  for (int bj = 0; bj < n3; ++bj)
+    for (int bi = 0; bi < n3; ++bi) {
+      const std::size_t off = 3 * static_cast<std::size_t>(bi) + static_cast<std::size_t>(n6) * 3 * bj;
+      const CM3 a(src + off, Eigen::OuterStride<>(n6));
+      M3 b(dst + off, Eigen::OuterStride<>(n6));
+      const Mat3 x = to_local ? Mat3(R.transpose() * a) : Mat3(R * a);
+      if (to_local) b.noalias() = x * R;
+      else b.noalias() = x * R.transpose();
+    }
+}
+
+bool translating(const Model& m, int J) {
+  return m.joint_type[J] == JointType::kPrismatic || m.joint_type[J] == JointType::kFree;
+}
+
+// World-frame views of a node's cached coefficients (ALGORITHMS §10.2: a node with no moved
+// joint only rotates, with its reference body).
+struct MetricCache {
+  const Model& m;
+  Data& d;
+  AdaptiveData& ad;
+  enum : char { kPhi = 1, kW = 2, kPsi = 4 };
+  const Mat3& R(int X) const { return d.R[ad.ref_body[X]]; }
+  CBlockMap phi_loc(int X, int a, int b) const {
+    const int h = m.tree.handle_num[X];
+    return CBlockMap(ad.Phi_loc.data() + d.Phi_adr[X] + 6 * a + 36 * h * b, Eigen::OuterStride<>(6 * h));
+  }
+  CBlockMap psi_loc(int X, int a, int b) const {
+    const int h = m.tree.handle_num[X];
+    return CBlockMap(ad.Psi_loc.data() + d.Phi_adr[X] + 6 * a + 36 * h * b, Eigen::OuterStride<>(6 * h));
+  }
+  // World Φ_X(a, b) x, Ψ_X(a, b) x, W_C x from the cache.
+  Vec6 phi(int X, int a, int b, const Vec6& x) const {
+    const Mat3& Rx = R(X);
+    return rot6(Rx, phi_loc(X, a, b) * rot6t(Rx, x));
+  }
+  Vec6 psi(int X, int a, int b, const Vec6& x) const {
+    const Mat3& Rx = R(X);
+    return rot6(Rx, psi_loc(X, a, b) * rot6t(Rx, x));
+  }
+  Vec6 W(int C, const Vec6& x) const {
+    const Mat3& Rc = R(C);
+    return rot6(Rc, ad.W_loc[C] * rot6t(Rc, x));
+  }
+  // Writes the world values into Data (Φ, W) and Psi_buf (Ψ) for the readers of full coefficients.
+  void ensure(int X, char what) {
+    const char need = what & ~ad.world_ok[X];
+    if (!need) return;
+    const int n6 = 6 * m.tree.handle_num[X];
+    const std::size_t adr = d.Phi_adr[X];
+    if (need & kPhi) rotate_blocks(R(X), ad.Phi_loc.data() + adr, d.Phi_buf.data() + adr, n6, false);
+    if ((need & kW) && !m.tree.is_leaf(X))
+      rotate_blocks(R(X), ad.W_loc[X].data(), d.W[X].data(), 6, false);
+    if ((need & kPsi) && !m.tree.is_leaf(X))
+      rotate_blocks(R(X), ad.Psi_loc.data() + adr, ad.Psi_buf.data() + adr, n6, false);
+    ad.world_ok[X] |= need;
+  }
+  // Stores a node just assembled in full (world values in Data/Psi_buf) into the cache.
+  void store(int X) {
+    const int n6 = 6 * m.tree.handle_num[X];
+    const std::size_t adr = d.Phi_adr[X];
+    rotate_blocks(R(X), d.Phi_buf.data() + adr, ad.Phi_loc.data() + adr, n6, true);
+    if (!m.tree.is_leaf(X)) {
+      rotate_blocks(R(X), d.W[X].data(), ad.W_loc[X].data(), 6, true);
+      rotate_blocks(R(X), ad.Psi_buf.data() + adr, ad.Psi_loc.data() + adr, n6, true);
+    }
+    ad.world_ok[X] = kPhi | kW | kPsi;
+  }
+  // A(X, f) = fᵀΨf + fᵀp + η with the handle forces in Data (Ψ from the cache, rotated f).
+  double metric_at(int X) const {
+    const int h = m.tree.handle_num[X];
+    Vec6* fl = ad.scratch_f.data();
+    double v = ad.eta[X];
+    for (int a = 0; a < h; ++a) {
+      fl[a] = rot6t(R(X), d.f(X, a));
+      v += d.f(X, a).dot(CVecMap(ad.p_buf.data() + d.vec_adr[X] + 6 * a));
+    }
+    for (int a = 0; a < h; ++a) {
+      Vec6 s = Vec6::Zero();
+      for (int b = 0; b < h; ++b) s.noalias() += psi_loc(X, a, b) * fl[b];
+      v += fl[a].dot(s);
+    }
+    return v;
+  }
+};
+
+// Bias terms only (b, β, τ̃ and p, η) of a node whose Φ, W, Ψ are cached: §5.2's b-recurrence and
+// compute_metric_coefficients' p, η recurrence written as matrix–vector products. With K_c = W Φ_P(j,
+// src c) (or −W Φ_Q(k, src c)), K_cᵀ y = ±Φ_X(src c, sJ) W y by the symmetry of Φ and W, so no 6×6
+// product is formed.
+void bias_node(MetricCache& mc, const State& st, int node) {
+  const Model& m = mc.m;
+  Data& d = mc.d;
+  AdaptiveData& ad = mc.ad;
+  const auto& t = m.tree;
+  auto pv = [&](int X, int slot) { return VecMap(ad.p_buf.data() + d.vec_adr[X] + 6 * slot); };
+  if (t.is_leaf(node)) {
+    const int k = t.body[node], h = t.handle_num[node];
+    ad.eta[node] = 0;
+    const Vec6 a0 = k == 0 ? Vec6::Zero() : Vec6(d.Iinv[k] * d.p_bias[k]);
+    for (int x = 0; x < h; ++x) {
+      const int jx = t.handle(node, x);
+      d.b(node, x) = (jx == k || k == 0) ? a0 : shift_motion(a0, d.d[jx]);
+      pv(node, x).setZero();
+    }
+    return;
+  }
+  d.cluster_live[node] = 0;
+  const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q];
+  const bool leafP = t.is_leaf(P), leafQ = t.is_leaf(Q);
+  auto phat = [&](const Vec6& x) { return Vec6(mc.phi(P, j, j, x) + mc.phi(Q, k, k, x)); };
+  const int nJ = m.v_num[J];
+  JointMat S, T, D;
+  if (nJ > 0) joint_subspaces(m, d, J, S, T, D);
+  Vec6 taut = Vec6::Zero();
+  if (nJ > 0 && !st.tau.segment(m.v_adr[J], nJ).isZero(0)) {
+    const Vec6 Dtau = D * st.tau.segment(m.v_adr[J], nJ);
+    taut = Dtau - mc.W(node, phat(Dtau));
+  }
+  d.taut[node] = taut;
+  const Vec6 beta = mc.W(node, d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
+  d.beta[node] = beta;
+  // p, η: z_X = 2 Ψ_X(sJ, sJ) m_X + p_X(sJ) with m_P = −β, m_Q = β.
+  const Vec6 mP = -beta, mQ = beta;
+  Vec6 zP = Vec6::Zero(), zQ = Vec6::Zero();
+  double eta = 0;
+  if (!leafP) {
+    const Vec6 y = mc.psi(P, j, j, mP);
+    zP = 2 * y + pv(P, j);
+    eta += mP.dot(y) + mP.dot(pv(P, j)) + ad.eta[P];
+  }
+  if (!leafQ) {
+    const Vec6 y = mc.psi(Q, k, k, mQ);
+    zQ = 2 * y + pv(Q, k);
+    eta += mQ.dot(y) + mQ.dot(pv(Q, k)) + ad.eta[Q];
+  }
+  Vec6 e = mc.W(node, zQ - zP);
+  if (nJ > 0) {
+    const Vec6 q0 = phat(beta) + d.b(Q, k) - d.b(P, j) - d.c[J];
+    const Vec6 u = D * (D.transpose() * q0);
+    e += 2 * (mc.W(node, phat(u)) - u);
+    eta += q0.dot(u);
+  }
+  ad.eta[node] = eta;
+  // Surviving handles of child X (sign −1 for P, +1 for Q): b = b_X + sign·Φ_X(·, sJ) β and
+  // p = −sign·Φ_X(·, sJ) e + 2 Ψ_X(·, sJ) m_X + p_X (m_X = sign·β), with β, e rotated into X's
+  // frame once.
+  int ci = 0;
+  auto side = [&](int X, int hX, int sJ, double sign, bool leaf) {
+    const Mat3& Rx = mc.R(X);
+    const Vec6 xb = rot6t(Rx, beta), xe = rot6t(Rx, e);
+    for (int i = 0; i < hX; ++i) {
+      if (i == sJ) continue;
+      const CBlockMap F = mc.phi_loc(X, i, sJ);
+      d.b(node, ci) = d.b(X, i) + sign * rot6(Rx, F * xb);
+      Vec6 lp = -sign * (F * xe);
+      if (!leaf) lp.noalias() += (2 * sign) * (mc.psi_loc(X, i, sJ) * xb);   // m_X = sign·β
+      pv(node, ci++) = rot6(Rx, lp) + (leaf ? Vec6::Zero() : Vec6(pv(X, i)));
+    }
+  };
+  side(P, hP, j, -1.0, leafP);
+  side(Q, hQ, k, 1.0, leafQ);
+}
+
+// The full-articulated coefficients of the selection (§9) and the metric coefficients (§8), for
+// every node. A node assembles in full (Φ, W, Ψ and the bias terms) when a joint inside it moved
+// since the last selection (bitwise q), a translating joint at one of its handles moved, it is an
+// inertia-form cluster node, or `exact`; every other node only recomputes its bias terms from
+// its cached Φ, W, Ψ (bias_node). Under V1 only the active region's joints move between
+// selections, so O(|active|) nodes assemble in full and O(n) nodes do O(h) matrix–vector work.
+void metric_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad, bool exact) {
+  const auto& t = m.tree;
+  const int nn = t.nnodes();
+  exact = exact || !ad.metric_cached;
+  auto& jm = ad.scratch_joint_moved;
+  for (int k = 1; k < m.nbodies; ++k) {
+    const int a = m.q_adr[k], n = (k + 1 < m.nbodies ? m.q_adr[k + 1] : m.nq) - a;
+    jm[k] = exact;
+    for (int i = 0; i < n && !jm[k]; ++i) jm[k] = st.q(a + i) != ad.q_cached(a + i);
+  }
+  for (int node = nn - 1; node >= 0; --node) {
+    bool mv = exact;
+    for (int x = 0; x < t.handle_num[node] && !mv; ++x) {
+      const int jx = t.handle(node, x);
+      mv = jm[jx] && translating(m, jx);
+    }
+    if (!t.is_leaf(node))
+      mv = mv || jm[t.joint[node]] || ad.node_moved[t.P[node]] || ad.node_moved[t.Q[node]];
+    ad.node_moved[node] = mv;
+    d.kind[node] = t.is_leaf(node) ? NodeKind::kLeaf : NodeKind::kActive;
+  }
+  forward_kinematics(m, d, st.q);
+  body_dynamics_terms(m, d, st);
+  dca_cluster_offsets(m, d);
+  std::fill(ad.world_ok.begin(), ad.world_ok.end(), 0);
+  MetricCache mc{m, d, ad};
+  std::int64_t full = 0, bias = 0;
+  for (int node = nn - 1; node >= 0; --node) {
+    if (ad.node_moved[node] || m.cluster_index[node] >= 0) {
+      if (!t.is_leaf(node)) {
+        for (int X : {t.P[node], t.Q[node]}) mc.ensure(X, MetricCache::kPhi | MetricCache::kPsi);
+      }
+      dca_bottom_up_node(m, d, node, st.tau);
+      metric_node(m, d, ad, node);
+      mc.store(node);
+      ++full;
+    } else {
+      bias_node(mc, st, node);
+      ++bias;
+    }
+  }
+  d.diag.nodes_bottom_up = full + bias;
+  ad.q_cached = st.q;
+  ad.metric_cached = true;
+  ad.report.metric_nodes_full = full;
+  ad.report.metric_nodes_bias = bias;
+  ad.report.exact_refresh = exact;
 }
 
 }  // namespace
@@ -332,23 +581,29 @@ void set_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
 double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
                             const AdaptiveOptions& opt) {
   const auto& t = m.tree;
-  // Full-articulated coefficients: every joint free (§9).
-  for (int node = 0; node < t.nnodes(); ++node)
-    d.kind[node] = t.is_leaf(node) ? NodeKind::kLeaf : NodeKind::kActive;
-  forward_kinematics(m, d, st.q);
-  body_dynamics_terms(m, d, st);
-  dca_bottom_up(m, d, st);
-  compute_metric_coefficients(m, d, ad);
+  // Full-articulated coefficients: every joint free (§9); cached Φ, W, Ψ where nothing moved.
+  const bool refresh = !opt.incremental_metric || !ad.metric_cached ||
+                       (opt.exact_refresh_every > 0 &&
+                        ad.selections_since_refresh + 1 >= opt.exact_refresh_every);
+  metric_pass(m, d, st, ad, refresh);
+  ad.selections_since_refresh = refresh ? 0 : ad.selections_since_refresh + 1;
+  MetricCache mc{m, d, ad};
+  auto top_down = [&](int node) {   // world W of the node and Φ of its children, then §7
+    mc.ensure(node, MetricCache::kW);
+    mc.ensure(t.P[node], MetricCache::kPhi);
+    mc.ensure(t.Q[node], MetricCache::kPhi);
+    dca_top_down_node(m, d, node);
+  };
   // Check (sets the next interval, see adaptive_step): the exact neglected metric of the region
   // being replaced, now — full-articulated top-down over its active nodes, Σ A over its frontier.
   for (int root : t.roots)
     for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
   ad.report.check_exact = -1;
   if (ad.region_selected) {
-    for (int node : ad.active_nodes) dca_top_down_node(m, d, node);
+    for (int node : ad.active_nodes) top_down(node);
     double exact = 0;
     for (int F : ad.frontier)   // (inactive roots are frontier nodes too)
-      if (!t.is_leaf(F)) exact += metric_at(m, d, ad, F);
+      if (!t.is_leaf(F)) exact += mc.metric_at(F);
     ad.report.check_exact = std::max(0.0, exact);
   }
   std::fill(ad.active.begin(), ad.active.end(), 0);
@@ -358,7 +613,7 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   for (int root : t.roots) {
     for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
     if (t.is_leaf(root)) continue;
-    const double v = metric_at(m, d, ad, root);
+    const double v = mc.metric_at(root);
     heap.push_back({v, root});
     frontier_sum += v;
   }
@@ -374,11 +629,11 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
     if (opt.mode == AdaptiveOptions::Mode::kBudget && dofs + nJ > opt.budget) continue;
     ad.active[node] = 1;
     dofs += nJ;
-    dca_top_down_node(m, d, node);
+    top_down(node);
     frontier_sum -= value;
     for (int ch : {t.P[node], t.Q[node]}) {
       if (t.is_leaf(ch)) continue;
-      const double v = metric_at(m, d, ad, ch);
+      const double v = mc.metric_at(ch);
       frontier_sum += v;
       heap.push_back({v, ch});
       std::push_heap(heap.begin(), heap.end());

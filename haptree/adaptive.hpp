@@ -43,6 +43,15 @@ struct AdaptiveOptions {
   int interval_max = 1000;    // error-controlled: longest interval
   double estimate_growth = 1.0;      // budget mode: bound = (1 + this)× the selection's value
   double estimate_floor_rel = 1e-6;  // ... + this × the total metric (round-off level values)
+  // Selection cost (issue 13.1, ALGORITHMS §10.2/§10.4): a node whose subtree has no joint that
+  // moved since the last selection keeps its configuration-only coefficients Φ, W, Ψ (cached in its
+  // reference body's frame, only rotated on use); only its bias terms b, β, p, η are recomputed,
+  // with matrix–vector products. Nodes with a moved joint (the active region's) get the full
+  // assembly. Exact (equal to the full recompute up to round-off); false: every node in full.
+  bool incremental_metric = true;
+  // Every this many selections the coefficients are recomputed from scratch (§10.4-A, the check
+  // and reset of the incremental ones); 0: never, except when nothing is cached yet.
+  int exact_refresh_every = 16;
 };
 
 struct AdaptiveReport {
@@ -58,6 +67,10 @@ struct AdaptiveReport {
   // (−1: none, e.g. the first selection), and the interval chosen until the next one.
   double check_exact = -1;
   int interval = 0;
+  // At the last selection: nodes assembled in full (Φ, W, Ψ) and nodes whose bias terms only were
+  // recomputed (incremental_metric), and whether it was an exact refresh (every node in full).
+  std::int64_t metric_nodes_full = 0, metric_nodes_bias = 0;
+  bool exact_refresh = false;
 };
 
 // Per-run adaptive workspace, sized once from the Model.
@@ -83,6 +96,16 @@ struct AdaptiveData {
   // Metric coefficients (§8), full-articulated, from the last selection.
   std::vector<double> Psi_buf, p_buf;
   std::vector<double> eta;             // (nnodes)
+  // Incremental metric (AdaptiveOptions::incremental_metric): Φ, Ψ (Data's Φ layout) and W of
+  // every node in the frame of its reference body at the time they were assembled (valid while no
+  // joint inside the node, nor a translating joint at its handles, has moved: the bitwise q of
+  // the last selection, q_cached, tells); which nodes hold the current world values in Data/Psi_buf.
+  std::vector<double> Phi_loc, Psi_loc;
+  std::vector<Mat6> W_loc;
+  Eigen::VectorXd q_cached;
+  bool metric_cached = false;
+  int selections_since_refresh = 0;
+  std::vector<char> node_moved, world_ok, scratch_joint_moved;
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;
@@ -93,6 +116,7 @@ struct AdaptiveData {
   // Scratch for the metric coefficients (sized once from the largest handle count).
   std::vector<Mat6> scratch_K, scratch_V, scratch_Y;
   std::vector<Mat3> scratch_U, scratch_Vb, scratch_Sk;   // frontier Φ blocks (per handle)
+  std::vector<Vec6> scratch_f;                            // handle forces in a node's frame
   std::vector<std::pair<double, int>> heap;
   bool region_selected = false;   // the region came from select_active_region (checkable)
   int interval = 25;              // steps until the next selection (error-controlled mode)

@@ -844,4 +844,36 @@ double potential_energy(const Model& m, const Data& d) noexcept {
   return e;
 }
 
+// Hooks for adaptive.cpp (issue 13.1): the same steps as dca_bottom_up, split (kept apart from it
+// so that the pass itself is unchanged).
+void dca_cluster_offsets(const Model& m, Data& d) noexcept {
+  if (m.ncluster_nodes == 0) return;
+  for (int k = 1; k < m.nbodies; ++k) {
+    if (m.cluster_root[k] == k) {
+      d.cluster_offset[k].setZero();
+      d.cluster_offset_lo[k].setZero();
+      continue;
+    }
+    const int p = m.parent[k];
+    const Vec3& a = d.cluster_offset[p];
+    const Vec3& b = d.d[k];
+    const Vec3 s = a + b;
+    const Vec3 bb = s - a;
+    const Vec3 err = (a - (s - bb)) + (b - bb);
+    d.cluster_offset[k] = s;
+    d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + err;
+  }
+}
+
+void dca_bottom_up_node(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  if (m.tree.is_leaf(node)) {
+    dca_leaf(m, d, node);
+  } else if (m.cluster_index[node] >= 0) {
+    assemble_joint(m, d, node, tau);
+    assemble_inertia_form(m, d, node, tau);
+  } else {
+    dca_assemble(m, d, node, tau);
+  }
+}
+
 }  // namespace haptree

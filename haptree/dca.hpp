@@ -28,6 +28,11 @@ void dca_assemble(const Model& model, Data& data, int node, const Eigen::VectorX
 void dca_top_down_node(const Model& model, Data& data, int node) noexcept;
 
 void dca_bottom_up(const Model& model, Data& data, const State& state) noexcept;
+// The two parts of dca_bottom_up, for callers that assemble only some nodes (adaptive.cpp's
+// incremental metric, issue 13.1): the cluster offsets (once per pass, before any node), and one
+// node as dca_bottom_up assembles it (leaf, inertia-form cluster node, or ordinary node).
+void dca_cluster_offsets(const Model& model, Data& data) noexcept;
+void dca_bottom_up_node(const Model& model, Data& data, int node, const Eigen::VectorXd& tau) noexcept;
 void dca_top_down(const Model& model, Data& data) noexcept;
 
 // Full forward dynamics: kinematics, both passes. Returns data.qdd.

@@ -90,6 +90,8 @@ struct Result {
   std::vector<double> neglected, total, active, nodes;
   int active_max = 0;
   std::int64_t selections = 0;
+  std::vector<double> sel_cpu;          // CPU µs of the steps that selected
+  std::vector<double> sel_nodes_full;   // nodes assembled in full per selection (incremental metric)
   double check_max = 0;   // largest exact neglected metric of a region when it was replaced
   double v1_jump = 0;   // Σ over selections of KE(q̇ with the new inactive joints zeroed) − KE(q̇)
   Eigen::VectorXd q, qd;
@@ -173,6 +175,8 @@ Result run_adaptive(const Scene& sc, const State& init, const AdaptiveOptions& a
       r.nodes.push_back(double(rep.nodes_bottom_up + rep.nodes_top_down));
     }
     if (rep.reselected) {
+      if (s >= warmup) r.sel_cpu.push_back(c1 - cf);
+      r.sel_nodes_full.push_back(double(rep.metric_nodes_full));
       r.check_max = std::max(r.check_max, rep.check_exact);
       const double ke0 = kinetic(pre);
       Eigen::VectorXd keep = Eigen::VectorXd::Zero(m.nv);
@@ -214,6 +218,7 @@ std::vector<std::string> split(const std::string& s) {
 
 struct Config {
   int robot_steps = 100, mol_steps = 40, warmup = 2, reselect_every = 0;
+  bool exact_metric = false;   // every selection recomputes every node's coefficients in full
   double robot_dt_s = 1e-3, mol_dt_ps = 0.0005, pull_n = 5.0, pull_kjmolnm = 1000.0;
   double init_qd_rad_s = 0.0;
   double gravity_z = -9.81;   // robot scenes (m/s²)
@@ -336,6 +341,9 @@ int main(int argc, char** argv) {
   app.add_option("--reselect-every", c.reselect_every,
                  "steps between active-region selections (0 = the library default: error-controlled)")
       ->capture_default_str();
+  app.add_flag("--exact-metric", c.exact_metric,
+               "every selection assembles every node in full (AdaptiveOptions::incremental_metric = "
+               "false; the default reuses the cached Φ, W, Ψ of nodes with no moved joint)");
   app.add_option("--warmup", c.warmup, "first steps of each run not timed")->capture_default_str();
   app.add_flag("--fresh-poses", c.fresh_poses,
                "adaptive runs: forward_kinematics of the current q before the loads instead of "
@@ -367,12 +375,13 @@ int main(int argc, char** argv) {
          "active_dofs_mean,active_dofs_max,nodes_visited_mean,full_nodes_visited,"
          "neglected_mean,neglected_max,total_metric_mean,neglected_rel_mean,rms_q_dev,"
          "max_body_dev,energy_full,energy_adaptive,energy_diff,energy_initial,finite,v1_ke_jump_sum,"
-         "selections,check_max,cpu_us_p90\n";
+         "selections,check_max,cpu_us_p90,selection_step_cpu_us_mean,metric_nodes_full_mean\n";
   std::printf("| scene | DOF | setting | active DOF (mean/max) | step µs CPU (median / mean) | "
               "full DCA µs (median / mean) | speed-up (median / mean) | selections | nodes visited | "
               "neglected metric (mean / max) | at replacement (max) | rel. to total | RMS q dev | "
-              "max body dev | E − E_full | KE jump if q̇ were zeroed |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+              "max body dev | E − E_full | KE jump if q̇ were zeroed | selecting step µs (mean) | "
+              "nodes in full per selection |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   std::fflush(stdout);
 
   bool ok = true;
@@ -430,6 +439,7 @@ int main(int argc, char** argv) {
       ao.budget = st.budget;
       ao.epsilon = st.eps_rel * total0;
       ao.reselect_every = c.reselect_every;
+      ao.incremental_metric = !c.exact_metric;
       const Result r = run_adaptive(sc, init, ao, c.warmup, c.fresh_poses);
       const double med = median(r.cpu), mn = mean(r.cpu);
       const double loads = median(r.ff_cpu);
@@ -449,12 +459,13 @@ int main(int argc, char** argv) {
         ok = false;
       }
       std::printf("| %s | %d | %s | %.1f / %d | %.1f / %.1f | %.1f / %.1f | %.1f× / %.1f× | %lld | %.0f | "
-                  "%.3g / %.3g | %.3g | %.2g | %.3g rad | %.3g %s | %.3g %s%s | %.3g |\n",
+                  "%.3g / %.3g | %.3g | %.2g | %.3g rad | %.3g %s | %.3g %s%s | %.3g | %.0f | %.0f |\n",
                   name.c_str(), m.nv, st.label.c_str(), act_mean, r.active_max, med, mn, full_med,
                   full_mean, full_med / med, full_mean / mn, static_cast<long long>(r.selections),
                   nodes, neg_mean, neg_max, r.check_max,
                   tot_mean > 0 ? neg_mean / tot_mean : 0.0, rms, body_dev, sc.length_unit.c_str(),
-                  dE, sc.energy_unit.c_str(), finite ? "" : " NON-FINITE", r.v1_jump);
+                  dE, sc.energy_unit.c_str(), finite ? "" : " NON-FINITE", r.v1_jump,
+                  r.sel_cpu.empty() ? 0.0 : mean(r.sel_cpu), r.sel_nodes_full.empty() ? 0.0 : mean(r.sel_nodes_full));
       std::fflush(stdout);
       csv << name << ',' << m.nv << ',' << (st.mode == AdaptiveOptions::Mode::kBudget ? "budget" : "threshold")
           << ',' << st.label << ',' << st.budget << ',' << ao.epsilon << ',' << st.eps_rel << ','
@@ -466,7 +477,8 @@ int main(int argc, char** argv) {
           << ',' << (tot_mean > 0 ? neg_mean / tot_mean : 0.0) << ',' << rms << ',' << body_dev << ','
           << full.energy << ',' << r.energy << ',' << dE << ',' << E0 << ',' << (finite ? 1 : 0)
           << ',' << r.v1_jump << ',' << r.selections << ',' << r.check_max << ','
-          << percentile(r.cpu, 0.9) << '\n';
+          << percentile(r.cpu, 0.9) << ',' << (r.sel_cpu.empty() ? 0.0 : mean(r.sel_cpu)) << ','
+          << (r.sel_nodes_full.empty() ? 0.0 : mean(r.sel_nodes_full)) << '\n';
       csv.flush();
     }
   }
