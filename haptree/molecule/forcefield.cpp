@@ -197,13 +197,18 @@ Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::ve
   cell_next_.assign(n_, -1);
   row_.assign(n_ + 1, 0);
   cell_head_.assign(std::max(64, 2 * n_), -1);
-  key_ = body_;
-  new_key_ = body_;
+  gkey_ = body_;
   p14_act_ = p14_;
   tors_act_ = tors_;
   build_list(x0);
   const size_t cap = 2 * npairs_ + 1024;
   if (pj_.size() < cap) pj_.resize(cap);
+  apj_.resize(pj_.size());
+  ipj_.resize(pj_.size());
+  arow_.assign(n_ + 1, 0);
+  irow_.assign(n_ + 1, 0);
+  F_loc_.assign(n_, Vec3::Zero());
+  cached_atoms_.reserve(n_);
   rebuilds_ = 0;
 }
 
@@ -268,10 +273,14 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
           const int xx = c[0] + dx;
           if (xx < 0 || xx >= nc[0]) continue;
           for (int j = cell_head_[(z * nc[1] + y) * nc[0] + xx]; j >= 0; j = cell_next_[j]) {
-            if ((off == 0 && j <= i) || key_[j] == key_[i]) continue;
+            if ((off == 0 && j <= i) || body_[j] == body_[i]) continue;
             if ((x[i] - x[j]).squaredNorm() >= rl2) continue;
             if (std::binary_search(eb, ee, j)) continue;
-            if (np == pj_.size()) pj_.resize(2 * np + 1024);   // only beyond 2x the setup size
+            if (np == pj_.size()) {   // only beyond 2x the setup size
+              pj_.resize(2 * np + 1024);
+              apj_.resize(pj_.size());
+              ipj_.resize(pj_.size());
+            }
             pj_[np] = j;
             ++np;
           }
@@ -303,8 +312,8 @@ inline double hsum(__m256d v) {
 #endif
 
 template <bool DDD>
-void Evaluator::nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F, double& ec_out,
-                               double& el_out) const {
+void Evaluator::nonbonded_rows(const int* row, const int* pj_list, const std::vector<Vec3>& x,
+                               std::vector<Vec3>& F, double& ec_out, double& el_out) const {
   double ec = 0, el = 0;   // locals: accumulating through the references would go via memory
 #ifdef __AVX__
   __m256d vec = _mm256_setzero_pd(), vel = _mm256_setzero_pd();
@@ -323,7 +332,7 @@ void Evaluator::nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F,
   const double* e2 = e2_.data();
   const double* qa = q_.data();
   for (int i = 0; i < n_; ++i) {
-    const int b = row_[i], end = row_[i + 1];
+    const int b = row[i], end = row[i + 1];
     if (b == end) continue;
     const Vec3 xi = x[i];
     const double qi = kq * q_[i], si = hs[i], ei = e2[i];
@@ -333,7 +342,7 @@ void Evaluator::nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F,
 #endif
     for (int c0 = b; c0 < end; c0 += kChunk) {
       const int mc = std::min(kChunk, end - c0);
-      const int* pj = pj_.data() + c0;
+      const int* pj = pj_list + c0;
       // Gather, keeping only partners inside r_off (branch-free compaction: always write, advance
       // when inside).
       int m = 0;
@@ -462,15 +471,22 @@ void Evaluator::nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F,
   el_out += el;
 }
 
-double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
-  if (&x != &x_) x_ = x;   // same size: no allocation
-  if (!list_covers(x)) build_list(x);
+double Evaluator::evaluate(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms,
+                           const Data* data) {
+  if (!list_covers(x)) {
+    build_list(x);
+    if (grouped_) split_list();   // pairs inside a group keep their distances: cache stays valid
+  }
   if (static_cast<int>(F.size()) != n_) F.resize(n_);
   for (auto& f : F) f.setZero();
   EnergyTerms e;
   double ec = 0, el = 0;
-  if (o_.distance_dielectric) nonbonded_rows<true>(x, F, ec, el);
-  else nonbonded_rows<false>(x, F, ec, el);
+  const int* row = grouped_ ? arow_.data() : row_.data();
+  const int* pj = grouped_ ? apj_.data() : pj_.data();
+  if (o_.distance_dielectric) nonbonded_rows<true>(row, pj, x, F, ec, el);
+  else nonbonded_rows<false>(row, pj, x, F, ec, el);
+  last_evaluated_ += static_cast<size_t>(row[n_]);
+  total_evaluated_ += row[n_];
   e.coulomb = ec;
   e.lj = el;
   for (const auto& p : p14_act_) {
@@ -480,68 +496,157 @@ double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F
     F[p.j] -= f;
   }
   for (const auto& tr : tors_act_) e.torsion += torsion_kernel(tr, x, &F);
-  e.rigid_constant = e_const_ + e_region_;
+  if (grouped_ && data)   // group-internal forces: constant in the group root's frame
+    for (int a : cached_atoms_) F[a] += data->R[group_[body_[a]]] * F_loc_[a];
+  e.rigid_constant = e_const_ + e_group_;
   terms_ = e;
   if (terms) *terms = e;
   return e.total();
 }
 
-void Evaluator::set_rigid_regions(const std::vector<int>& body_region) {
-  // Full list (keys = bodies) at the last positions, so every pair that becomes region-internal is
-  // seen, including those skipped under the previous regions.
-  if (regions_active_ || !list_covers(x_)) {
-    key_ = body_;
-    build_list(x_);
-  }
-  const int nb = static_cast<int>(body_region.size());
-  for (int a = 0; a < n_; ++a) {
-    const int b = body_[a];
-    const int r = b < nb ? body_region[b] : -1;
-    new_key_[a] = r >= 0 ? r : nb + b;   // bodies outside every region keep their own key
-  }
-  // Energy of the terms that become internal to a region (constant while the regions hold).
-  double e = 0;
-  const double roff2 = o_.r_off * o_.r_off;
-  for (int i = 0; i < n_; ++i)
+double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms) {
+  if (&x != &x_) x_ = x;   // same size: no allocation
+  ungroup();
+  tracked_ = false;
+  last_evaluated_ = 0;
+  return evaluate(x_, F, terms, nullptr);
+}
+
+void Evaluator::ungroup() {
+  if (!grouped_) return;
+  grouped_ = false;
+  gkey_ = body_;
+  p14_act_ = p14_;   // within capacity: no allocation
+  tors_act_ = tors_;
+  e_group_ = 0;
+  cached_atoms_.clear();
+  napairs_ = nipairs_ = 0;
+  ngroups_ = 0;
+}
+
+// Split of the list by group: pairs between groups (evaluated every step) and inside one group.
+void Evaluator::split_list() {
+  size_t na = 0, ni = 0;
+  const int* gk = gkey_.data();
+  for (int i = 0; i < n_; ++i) {
+    arow_[i] = static_cast<int>(na);
+    irow_[i] = static_cast<int>(ni);
+    const int gi = gk[i];
     for (int p = row_[i]; p < row_[i + 1]; ++p) {
       const int j = pj_[p];
-      if (new_key_[i] != new_key_[j]) continue;
-      const Vec3 d = x_[i] - x_[j];
-      const double r2 = d.squaredNorm();
-      if (r2 >= roff2) continue;
-      double ec = 0, el = 0;
-      Vec3 f;
-      pair_kernel(o_, q_[i] * q_[j], 0.5 * (sig_[i] + sig_[j]), sqeps_[i] * sqeps_[j], d, r2, ec, el, f);
-      e += ec + el;
+      if (gk[j] == gi) ipj_[ni++] = j;
+      else apj_[na++] = j;
     }
+  }
+  arow_[n_] = static_cast<int>(na);
+  irow_[n_] = static_cast<int>(ni);
+  napairs_ = na;
+  nipairs_ = ni;
+}
+
+namespace {
+inline double max_abs_diff(const Mat3& a, const Mat3& b) { return (a - b).cwiseAbs().maxCoeff(); }
+inline double max_abs_diff(const Vec3& a, const Vec3& b) { return (a - b).cwiseAbs().maxCoeff(); }
+}  // namespace
+
+// Per joint k: the pose of body k relative to its parent, against the last step (still_) and, for
+// joints inside a group, against the pose when the group was formed. True: re-form the groups
+// (a group's inside moved, or a joint between groups has been still for two steps).
+bool Evaluator::track_motion(const Model& m, const Data& d) {
+  const int nb = m.nbodies;
+  if (static_cast<int>(group_.size()) != nb) {   // first call with this model: sized once
+    group_.resize(nb);
+    for (int k = 0; k < nb; ++k) group_[k] = k;
+    rel_R_.assign(nb, Mat3::Identity());
+    ref_R_.assign(nb, Mat3::Identity());
+    rel_t_.assign(nb, Vec3::Zero());
+    ref_t_.assign(nb, Vec3::Zero());
+    still_.assign(nb, 0);
+    gmark_.assign(nb, 0);
+    tracked_ = false;
+  }
+  const bool first = !tracked_;
+  bool regroup = false;
+  for (int k = 1; k < nb; ++k) {
+    const int p = m.parent[k];
+    const Mat3 R = d.R[p].transpose() * d.R[k];
+    const Vec3 t = d.R[p].transpose() * (d.r[k] - d.r[p]);
+    if (first) {
+      still_[k] = 0;
+    } else {
+      const bool moved = max_abs_diff(R, rel_R_[k]) > kStillTol || max_abs_diff(t, rel_t_[k]) > kStillTol;
+      still_[k] = moved ? 0 : still_[k] + 1;
+    }
+    rel_R_[k] = R;
+    rel_t_[k] = t;
+    if (grouped_ && group_[k] == group_[p]) {
+      if (max_abs_diff(R, ref_R_[k]) > kRigidTol || max_abs_diff(t, ref_t_[k]) > kRigidTol) regroup = true;
+    } else if (still_[k] >= 2) {
+      regroup = true;
+    }
+  }
+  tracked_ = true;
+  return regroup;
+}
+
+// Groups = components of the body tree over joints that did not move in the last step; everything
+// inside one group is evaluated here, once, at the current positions (x_, poses in d).
+void Evaluator::regroup(const Model& m, const Data& d) {
+  ++regroups_;
+  const int nb = m.nbodies;
+  group_[0] = 0;
+  bool any = false;
+  for (int k = 1; k < nb; ++k) {
+    const bool joined = still_[k] >= 1;
+    any = any || joined;
+    group_[k] = joined ? group_[m.parent[k]] : k;
+    ref_R_[k] = rel_R_[k];
+    ref_t_[k] = rel_t_[k];
+  }
+  if (!any) {   // everything moved: no group
+    for (int k = 0; k < nb; ++k) group_[k] = k;
+    ungroup();
+    return;
+  }
+  ngroups_ = 0;
+  std::fill(gmark_.begin(), gmark_.end(), 0);
+  for (int k = 1; k < nb; ++k)
+    if (group_[k] != k && !gmark_[group_[k]]) { gmark_[group_[k]] = 1; ++ngroups_; }
+  for (int a = 0; a < n_; ++a) gkey_[a] = group_[body_[a]];
+  grouped_ = true;
+  if (!list_covers(x_)) build_list(x_);
+  split_list();
+  // Group-internal terms at the current positions: energy constant, forces kept in the group frame.
+  for (auto& f : F_) f.setZero();   // scratch for the internal forces
+  double ec = 0, el = 0, e = 0;
+  if (o_.distance_dielectric) nonbonded_rows<true>(irow_.data(), ipj_.data(), x_, F_, ec, el);
+  else nonbonded_rows<false>(irow_.data(), ipj_.data(), x_, F_, ec, el);
+  last_evaluated_ += nipairs_;
+  total_evaluated_ += static_cast<std::int64_t>(nipairs_);
+  e = ec + el;
   p14_act_.clear();
   for (const auto& p : p14_) {
-    if (new_key_[p.i] != new_key_[p.j]) { p14_act_.push_back(p); continue; }
-    double ec = 0, el = 0;
+    if (gkey_[p.i] != gkey_[p.j]) { p14_act_.push_back(p); continue; }
+    double c = 0, l = 0;
     Vec3 f;
-    pair14_kernel(o_, p, x_[p.i] - x_[p.j], ec, el, f);
-    e += ec + el;
+    pair14_kernel(o_, p, x_[p.i] - x_[p.j], c, l, f);
+    F_[p.i] += f;
+    F_[p.j] -= f;
+    e += c + l;
   }
   tors_act_.clear();
   for (const auto& t : tors_) {
-    const int k = new_key_[t.i];
-    if (new_key_[t.j] == k && new_key_[t.k] == k && new_key_[t.l] == k) e += torsion_kernel(t, x_, nullptr);
+    const int g = gkey_[t.i];
+    if (gkey_[t.j] == g && gkey_[t.k] == g && gkey_[t.l] == g) e += torsion_kernel(t, x_, &F_);
     else tors_act_.push_back(t);
   }
-  e_region_ = e;
-  key_.swap(new_key_);
-  build_list(x_);
-  regions_active_ = true;
-}
-
-void Evaluator::clear_rigid_regions() {
-  if (!regions_active_) return;
-  key_ = body_;
-  p14_act_ = p14_;   // within capacity: no allocation
-  tors_act_ = tors_;
-  e_region_ = 0;
-  build_list(x_);
-  regions_active_ = false;
+  e_group_ = e;
+  cached_atoms_.clear();
+  for (int a = 0; a < n_; ++a) {
+    if (F_[a].isZero(0)) continue;
+    F_loc_[a] = d.R[group_[body_[a]]].transpose() * F_[a];
+    cached_atoms_.push_back(a);
+  }
 }
 
 bool Evaluator::list_covers(const std::vector<Vec3>& x) const {
@@ -554,7 +659,18 @@ bool Evaluator::list_covers(const std::vector<Vec3>& x) const {
 
 double Evaluator::compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext) {
   for (int a = 0; a < n_; ++a) x_[a] = data.r[body_[a]] + data.R[body_[a]] * local_[a];
-  const double E = compute_atoms(x_, F_, nullptr);
+  last_evaluated_ = 0;
+  double E;
+  bool finite = true;
+  for (int a = 0; a < n_ && finite; ++a) finite = x_[a].allFinite();
+  if (o_.follow_motion && finite) {
+    if (track_motion(model, data)) regroup(model, data);
+    E = evaluate(x_, F_, nullptr, &data);
+  } else {
+    ungroup();
+    tracked_ = false;
+    E = evaluate(x_, F_, nullptr, nullptr);
+  }
   if (static_cast<int>(f_ext.size()) != model.nbodies) f_ext.resize(model.nbodies);
   for (auto& f : f_ext) f.setZero();
   for (int a = 0; a < n_; ++a) {

@@ -5,6 +5,7 @@
 // Units: nm, kJ/mol, e; forces kJ/mol/nm (docs/molecules.md).
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 #include "haptree/data.hpp"
@@ -18,6 +19,10 @@ struct NonbondedOptions {
   double r_on = 0.8, r_off = 1.0;   // nm, switch
   double skin = 0.1;                // nm, Verlet skin; the list is rebuilt when an atom moved > skin/2
   bool distance_dielectric = true;  // ε(r) = 4r (Å); false: ε = 1
+  // compute(Model, Data, ...): evaluate only pairs between bodies that moved relative to each other
+  // (rigid groups found from the body poses, docs/molecules.md "Work follows motion"). false:
+  // every pair between different bodies, every step.
+  bool follow_motion = true;
 };
 
 struct EnergyTerms {
@@ -50,29 +55,50 @@ class Evaluator {
   // model.nbodies; bodies without atoms get zero). Returns the potential energy (kJ/mol).
   double compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext);
 
-  // Adaptive dynamics: bodies with the same region id (>= 0) move as one rigid body (e.g.
-  // AdaptiveData::frontier_of_body after a selection). Until the next call, terms inside one region
-  // are skipped; their energy (at the positions of the last compute) is added as a constant. Body
-  // wrenches then lack the region-internal forces, whose sum over the region is zero (they cancel
-  // in the composite rigid body). O(pairs); does not allocate. Empty vector = no regions.
-  void set_rigid_regions(const std::vector<int>& body_region);
-  void clear_rigid_regions();
+  // Work follows motion (compute(Model, Data, ...) with follow_motion): every step the relative
+  // pose of each body to its parent is compared with the last step's; bodies joined by joints that
+  // did not move form rigid groups (with adaptive dynamics: the frontier regions, and clusters that
+  // moved together). Pairs, 1-4 pairs and torsions inside one group are evaluated once, when the
+  // groups are formed, and kept as a constant energy plus per-atom forces in the group's root-body
+  // frame (rotated on use), so energy, atom forces and f_ext stay complete (= all pairs) while only
+  // pairs between groups are evaluated. A group whose inside moves by more than kRigidTol (a
+  // rotation entry or nm) since it was formed is re-formed at once; joints still for two steps
+  // are merged. compute_atoms() evaluates every inter-body pair (no poses, no groups).
+  static constexpr double kStillTol = 1e-13;   // per step: "did not move" (round-off is ~5e-15)
+  static constexpr double kRigidTol = 1e-12;   // since the group was formed
+  // Kept for callers of the earlier interface: the groups are found from the poses, so both are
+  // no-ops (forces are always complete; no clearing is needed before a selection's full pass).
+  void set_rigid_regions(const std::vector<int>&) {}
+  void clear_rigid_regions() {}
 
   const std::vector<Vec3>& positions() const { return x_; }
   const std::vector<Vec3>& atom_forces() const { return F_; }
   const EnergyTerms& last_terms() const { return terms_; }
   int neighbour_rebuilds() const { return rebuilds_; }
-  size_t neighbour_pairs() const { return npairs_; }
+  // Pairs in the list evaluated each step: between groups when grouped, else every listed pair.
+  size_t neighbour_pairs() const { return grouped_ ? napairs_ : npairs_; }
+  size_t listed_pairs() const { return npairs_; }            // all inter-body pairs in the list
+  // Listed pairs through the kernel in the last compute (incl. the group set-up) and in all.
+  size_t pairs_evaluated() const { return last_evaluated_; }
+  std::int64_t pairs_evaluated_total() const { return total_evaluated_; }
+  int regroups() const { return regroups_; }
+  int rigid_groups() const { return ngroups_; }               // groups of >= 2 bodies
+  size_t cached_pairs() const { return nipairs_; }            // listed pairs inside groups
   size_t active_torsions() const { return tors_act_.size(); }
   size_t active_pairs14() const { return p14_act_.size(); }
   double rigid_constant() const { return e_const_; }
 
  private:
   void build_list(const std::vector<Vec3>& x);
+  void split_list();   // list -> pairs between groups (a*) and inside groups (i*), by gkey_
   bool list_covers(const std::vector<Vec3>& x) const;
+  bool track_motion(const Model& model, const Data& data);
+  void regroup(const Model& model, const Data& data);
+  void ungroup();
+  double evaluate(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms, const Data* data);
   template <bool DDD>
-  void nonbonded_rows(const std::vector<Vec3>& x, std::vector<Vec3>& F, double& ec, double& el) const;
-  bool regions_active_ = false;
+  void nonbonded_rows(const int* row, const int* pj, const std::vector<Vec3>& x, std::vector<Vec3>& F,
+                      double& ec, double& el) const;
   NonbondedOptions o_;
   int n_;
   std::vector<int> body_;
@@ -82,17 +108,31 @@ class Evaluator {
   std::vector<int> ex_adr_, ex_list_;   // CSR of excluded partners (1-2, 1-3, 1-4), sorted
   std::vector<mol::Pair14> p14_;
   std::vector<mol::Torsion> tors_;
-  double e_const_ = 0, e_region_ = 0;
-  std::vector<int> key_, new_key_;   // per atom: pairs with equal keys are skipped (body or region)
+  double e_const_ = 0, e_group_ = 0;
   std::vector<mol::Pair14> p14_act_;
   std::vector<mol::Torsion> tors_act_;
-  // neighbour list
+  // neighbour list: every pair of atoms on different bodies within r_off + skin
   std::vector<int> row_, pj_;   // CSR: partners of atom i are pj_[row_[i] .. row_[i+1])
   size_t npairs_ = 0;
   std::vector<Vec3> x_ref_;
   std::vector<int> cell_head_, cell_next_;
   bool list_valid_ = false;
   int rebuilds_ = 0;
+  // rigid groups (follow_motion)
+  bool grouped_ = false, tracked_ = false;
+  std::vector<int> group_;            // per body: root body of its group (parent[k] < k: smallest id)
+  std::vector<int> gkey_;             // per atom: group_[body]
+  std::vector<Mat3> rel_R_, ref_R_;   // per body: pose relative to the parent, last step / at grouping
+  std::vector<Vec3> rel_t_, ref_t_;
+  std::vector<int> still_;            // per body: steps its joint has not moved
+  std::vector<char> gmark_;           // scratch (per body)
+  std::vector<int> arow_, apj_, irow_, ipj_;   // list split: between groups / inside groups
+  size_t napairs_ = 0, nipairs_ = 0;
+  std::vector<Vec3> F_loc_;           // per atom: group-internal force in the group root's frame
+  std::vector<int> cached_atoms_;     // atoms with a group-internal force
+  int regroups_ = 0, ngroups_ = 0;
+  size_t last_evaluated_ = 0;
+  std::int64_t total_evaluated_ = 0;
   // workspace
   std::vector<Vec3> x_, F_;
   EnergyTerms terms_;

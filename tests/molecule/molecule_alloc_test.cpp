@@ -39,6 +39,16 @@ TEST(MoleculeAllocation, ForceFieldAndStepAllocateNothing) {
       forward_dynamics(m, d, st);
       integrate(m, st.q, st.qd, d.qdd, 1e-5);
     }
+    // Work follows motion: still steps, then one joint moving, then all: the groups are formed,
+    // re-formed and dropped (regroups, list splits, group caches) without allocating.
+    const int regroups0 = sc.force_field->regroups();
+    for (int i = 0; i < 8; ++i) {
+      if (i >= 3) st.q(st.q.size() / 2) += 1e-3;
+      if (i >= 6) st.q.array() += 1e-5;
+      forward_kinematics(m, d, st.q);
+      EXPECT_TRUE(std::isfinite(sc.compute(d, st.f_ext))) << name << " motion step " << i;
+    }
+    EXPECT_GE(sc.force_field->regroups() - regroups0, 2) << name;
     EXPECT_TRUE(st.q.allFinite()) << name;
     EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << name;
     EXPECT_GT(sc.force_field->neighbour_rebuilds(), rebuilds0) << name;
