@@ -429,6 +429,11 @@ bool Coupler::iterate(double now) {
   return true;
 }
 
+bool Coupler::new_pose_waiting() const noexcept {
+  if (shm_pose_) return shm_pose_->latest_index() != shm_pose_->last_index();
+  return pose_recv_s_.load(std::memory_order_acquire) != pose_time_s_;
+}
+
 void Coupler::publish_stats(double period_s, int64_t iterations) {
   const double now = since(kEpoch);
   const double snap_t = snapshot_recv_s_.load();
@@ -504,7 +509,9 @@ int Coupler::run(const std::atomic<bool>& stop) {
     next += period;
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up
     if (opt_.busy_wait) {
-      while (since(kEpoch) < next && !stop.load(std::memory_order_relaxed)) {
+      // --busy-poll: a new device pose ends the wait; that iteration takes the place of the next tick, so
+      // the rate stays --rate-hz and the pose waits for no tick (pose-to-force latency, issue 15.1).
+      while (since(kEpoch) < next && !stop.load(std::memory_order_relaxed) && !(opt_.busy_poll && new_pose_waiting())) {
       }
     } else {
       bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),

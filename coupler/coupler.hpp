@@ -29,6 +29,7 @@ struct CouplerOptions {
   int device = 0;
   double rate_hz = 10000;             // coupling loop rate
   bool busy_wait = true;              // busy pacing (true) or sleep_until (false)
+  bool busy_poll = false;             // while busy pacing, iterate as soon as a new device pose arrives
   double stiffness = 20;              // k_s, scene force / scene length
   double damping = 0;                 // b_s, scene force / scene velocity; < 2 m_eff/dt_sim − k_s dt_sim/2
   double position_scale = 10;         // scene length units per device metre
@@ -78,6 +79,7 @@ class Coupler {
  private:
   void on_snapshot(const void* data, uint32_t size);
   bool iterate(double now_s);
+  bool new_pose_waiting() const noexcept;                     // a device pose the loop has not taken yet
   void publish_stats(double period_s, int64_t iterations);
   bool take_pose(const lcmt_device_state& m, double now_s);   // origin + sanity; false = refused
   void report_problems();                                     // once-only warnings, outside the loop

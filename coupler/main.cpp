@@ -8,6 +8,7 @@
 
 #include "coupler/coupler.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/realtime_cli.hpp"
 #include "haptree/device/device_cli.hpp"
 
 int main(int argc, char** argv) {
@@ -53,7 +54,16 @@ int main(int argc, char** argv) {
           "HEX"));
   haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
   haptree::device::add_device_limit_options(app, limits);
+  haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::add_realtime_options(app, rt,
+                                     "with busy-wait pacing, iterate as soon as a new device pose arrives instead of "
+                                     "at the next tick (pose-to-force latency; the rate stays --rate-hz)");
   CLI11_PARSE(app, argc, argv);
+  if (rt.busy_poll && !o.busy_wait) {
+    spdlog::critical("--busy-poll needs busy-wait pacing: drop --sleep");
+    return 2;
+  }
+  o.busy_poll = rt.busy_poll;
   if (!haptree::device::enforce_device_limits(limits, o.stiffness, o.damping, o.position_scale, o.force_scale,
                                               o.max_force_n, o.rate_hz, "coupler"))
     return 2;
@@ -62,9 +72,13 @@ int main(int argc, char** argv) {
   o.shm = b.shm;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
+  const haptree::bus::RealtimeReport rt_report = haptree::bus::apply_realtime(rt);   // before any thread
+  haptree::bus::log_realtime_report(rt_report, "coupler");
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);
+    if (const auto w = haptree::bus::raise_io_thread(handler.native_handle(), rt_report); !w.empty())
+      spdlog::warn("coupler: real-time: {}", w);
     haptree::Coupler coupler(bus, o);
     const int rc = coupler.run(g_stop);
     handler.stop();   // no callback may run into a destroyed Coupler

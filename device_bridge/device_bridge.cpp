@@ -166,11 +166,14 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       next_report = t + 1.0;
     }
     if (opt_.busy_poll && shm_feedback_) {
-      while (now_s() < next && !stop.load(std::memory_order_relaxed)) poll_shm_feedback();
-    } else {
-      bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
-                               stop);
+      // Until the answer to this tick's pose arrives: no spinning for the rest of the period, which on a
+      // 2-core host would starve the coupler (and under SCHED_FIFO meet the kernel's RT throttling).
+      while (now_s() < next && !stop.load(std::memory_order_relaxed) &&
+             last_echo_.load(std::memory_order_relaxed) < r.seq)
+        poll_shm_feedback();
     }
+    bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
+                             stop);
   }
   device_->write_force(Vec3::Zero());
   return 0;

@@ -31,7 +31,7 @@ struct DeviceBridgeOptions {
                                                  // after which another coupler instance may take over
   bool shm = false;
   double mirror_rate_hz = 100;
-  bool busy_poll = false;                        // poll shm feedback between ticks (latency benchmark)
+  bool busy_poll = false;                        // poll shm feedback until this tick's answer (latency)
   std::string channel_suffix;
 };
 

@@ -8,6 +8,7 @@
 
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/realtime_cli.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
@@ -20,8 +21,12 @@ int main(int argc, char** argv) {
   app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
   app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
-  app.add_flag("--busy-poll", o.busy_poll, "poll shared-memory feedback between ticks (latency benchmark)");
+  haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::add_realtime_options(app, rt,
+                                     "after publishing a pose, poll shared-memory feedback until its answer arrives "
+                                     "(then sleep to the next tick) instead of waiting for the next tick");
   CLI11_PARSE(app, argc, argv);
+  o.busy_poll = rt.busy_poll;
   for (const auto& s : kv) {
     const auto eq = s.find('=');
     if (eq == std::string::npos) {
@@ -34,16 +39,20 @@ int main(int argc, char** argv) {
   o.mirror_rate_hz = b.mirror_rate_hz;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
+  const haptree::bus::RealtimeReport rt_report = haptree::bus::apply_realtime(rt);   // before any thread
+  haptree::bus::log_realtime_report(rt_report, "device_bridge");
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);
+    if (const auto w = haptree::bus::raise_io_thread(handler.native_handle(), rt_report); !w.empty())
+      spdlog::warn("device_bridge: real-time: {}", w);
     haptree::DeviceBridge bridge(bus, o);
     const int rc = bridge.run(g_stop);
     handler.stop();
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
-                 "p99 {:.1f} us ({} samples)",
+                 "p99 {:.1f} us ({} samples), p99.9 {:.1f} us",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),
-                 bridge.latency_percentile_us(0.99), bridge.latency_samples());
+                 bridge.latency_percentile_us(0.99), bridge.latency_samples(), bridge.latency_percentile_us(0.999));
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

@@ -5,6 +5,7 @@
 #include <atomic>
 
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/realtime_cli.hpp"
 #include "haptree/molecule/scene.hpp"
 #include "sim_server/sim_server.hpp"
 
@@ -68,12 +69,15 @@ int main(int argc, char** argv) {
                  "> 0: scene time between frames instead (ps for molecules, s otherwise)")
       ->check(CLI::NonNegativeNumber)->capture_default_str();
   // ---- end trajectory ----
+  haptree::bus::RealtimeOptions rt;   // issue 15.1: e.g. --cpu-affinity to keep the server off the coupler's CPU
+  haptree::bus::add_realtime_options(app, rt);
   CLI11_PARSE(app, argc, argv);
   if (o.scene == "protein_like" && app.count("--n") > 0 && o.urdf.empty())
     spdlog::warn("--n {} is ignored: protein_like has a fixed size (343 backbone bodies, 857 DOF)", o.n);
   if (gravity.size() == 3) o.gravity = haptree::Vec3(gravity[0], gravity[1], gravity[2]);
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
+  haptree::bus::log_realtime_report(haptree::bus::apply_realtime(rt), "sim_server");   // before any thread
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);

@@ -206,6 +206,7 @@ class HandlerThread {
   void stop();  // idempotent; joins
   int64_t handled() const noexcept { return handled_.load(); }
   int64_t errors() const noexcept { return errors_.load(); }  // handle() returned <0
+  std::thread::native_handle_type native_handle() { return thread_.native_handle(); }   // realtime.hpp
 
  private:
   Bus& bus_;
