@@ -69,7 +69,8 @@ struct GuardedForce {
   int32_t flags = 0;  // SafetyFlag bits
 };
 
-// The whole chain in the order the coupler needs it: non-finite -> zero, times the watchdog gain, clamp.
+// The whole chain in the order the coupler needs it: non-finite -> zero, clamp, times the watchdog gain
+// (so what comes out is at most gain x the limit: the ramps are linear in the force the device feels).
 // Whatever goes in, what comes out is finite and within the limits.
 class ForceSafety {
  public:

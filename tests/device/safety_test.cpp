@@ -131,6 +131,51 @@ TEST(Safety, ForceSafetyNeverPassesNonFiniteOrOverLimit) {
   EXPECT_LT(st.force.norm(), Vec3(0.1, 0.2, 0.3).norm());
 }
 
+// A pull far above the limit (30 N against a 3 N clamp, as a stiff spring stretched by a mouse) through a
+// ramp-in, a stale spell and a recovery. What the device feels must follow the watchdog's linear ramps
+// (|f| = gain x 3 N): with the gain applied before the clamp it reached 3 N at gain 0.1, i.e. after 10 ms
+// of a 100 ms ramp-in, and the viewer's HUD showed "WATCHDOG" with |f| at the clamp.
+TEST(Safety, ForceSafetyRampsTheClampedForceNotTheRawOne) {
+  ForceLimits lim;
+  lim.max_force = 3.0;
+  WatchdogParams wp;
+  wp.stale_after_s = 0.05;
+  wp.ramp_down_s = 0.005;
+  wp.ramp_up_s = 0.100;
+  ForceSafety safety(lim, wp);
+  const Vec3 raw(18.0, -24.0, 0.0);   // 30 N
+  const double dt = 1e-4, t_stop = 0.3, t_resume = 0.5;
+  double last_input = 0, t_full = -1, t_back = -1, prev = 0, max_up = 0, max_down = 0;
+  int watchdog_at_clamp = 0;   // calls flagged WATCHDOG whose |f| the HUD shows as "3.000" (>= 2.9995 N)
+  for (int k = 0; k <= 8000; ++k) {
+    const double t = k * dt;
+    if (t < t_stop || t >= t_resume) last_input = t;
+    const GuardedForce g = safety.apply(t, t - last_input, raw, Vec3::Zero());
+    const double fn = g.force.norm(), gain = safety.watchdog().gain();
+    ASSERT_TRUE(g.flags & kSafetyClamped);
+    // the direction is kept and the size is exactly gain x limit (a few ulps of 3)
+    ASSERT_NEAR(fn, gain * lim.max_force, 1e-14);
+    if (fn > 0) {
+      ASSERT_NEAR(g.force.normalized().dot(raw.normalized()), 1.0, 1e-14);
+    }
+    if ((g.flags & kSafetyWatchdog) && fn >= 2.9995) ++watchdog_at_clamp;
+    if (t_full < 0 && fn > lim.max_force - 1e-12) t_full = t;
+    if (t >= t_resume && t_back < 0 && fn > lim.max_force - 1e-12) t_back = t;
+    max_up = std::max(max_up, fn - prev);
+    max_down = std::max(max_down, prev - fn);
+    prev = fn;
+  }
+  const double tol = 2 * dt;
+  EXPECT_NEAR(t_full, wp.ramp_up_s, tol);               // the whole ramp-in, not a tenth of it
+  EXPECT_NEAR(t_back, t_resume + wp.ramp_up_s, tol);
+  // A watchdog state shows the clamp only in the last step of a ramp-in (gain 1 - rounding; 2 ramp-ins
+  // here), not for the last 90 % of each ramp-in as with the gain before the clamp (~1800 calls).
+  EXPECT_LE(watchdog_at_clamp, 2);
+  EXPECT_NEAR(max_up, lim.max_force * dt / wp.ramp_up_s, 1e-12);      // linear in the force felt
+  EXPECT_NEAR(max_down, lim.max_force * dt / wp.ramp_down_s, 1e-12);
+  EXPECT_EQ(safety.watchdog().trips(), 1);
+}
+
 // A port driven sinusoidally through a spring stores and returns energy (E back to ~0 over a period);
 // through a damper it only absorbs (passive); through a negative damper it produces energy (active).
 TEST(Safety, PassivityObserver) {
