@@ -347,23 +347,26 @@ void bias_node(MetricCache& mc, const State& st, int node) {
   d.taut[node] = taut;
   const Vec6 beta = mc.W(node, d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
   d.beta[node] = beta;
-  // p, η: z_X = 2 Ψ_X(sJ, sJ) m_X + p_X(sJ) with m_P = −β, m_Q = β.
-  const Vec6 mP = -beta, mQ = beta;
+  // β in each child's frame once: Φ̂β, Ψ_X(sJ, sJ) m_X (m_P = −β, m_Q = β) and side() reuse it.
+  const Mat3 &RP = mc.R(P), &RQ = mc.R(Q);
+  const Vec6 xbP = rot6t(RP, beta), xbQ = rot6t(RQ, beta);
+  // p, η: z_X = 2 Ψ_X(sJ, sJ) m_X + p_X(sJ).
   Vec6 zP = Vec6::Zero(), zQ = Vec6::Zero();
   double eta = 0;
   if (!leafP) {
-    const Vec6 y = mc.psi(P, j, j, mP);
-    zP = 2 * y + pv(P, j);
-    eta += mP.dot(y) + mP.dot(pv(P, j)) + ad.eta[P];
+    const Vec6 ly = -(mc.psi_loc(P, j, j) * xbP);   // Ψ_P m_P in P's frame
+    zP = 2 * rot6(RP, ly) + pv(P, j);
+    eta += -xbP.dot(ly) - beta.dot(pv(P, j)) + ad.eta[P];   // m_P·Ψ m_P = (−xbP)·ly
   }
   if (!leafQ) {
-    const Vec6 y = mc.psi(Q, k, k, mQ);
-    zQ = 2 * y + pv(Q, k);
-    eta += mQ.dot(y) + mQ.dot(pv(Q, k)) + ad.eta[Q];
+    const Vec6 ly = mc.psi_loc(Q, k, k) * xbQ;
+    zQ = 2 * rot6(RQ, ly) + pv(Q, k);
+    eta += xbQ.dot(ly) + beta.dot(pv(Q, k)) + ad.eta[Q];
   }
   Vec6 e = mc.W(node, zQ - zP);
   if (nJ > 0) {
-    const Vec6 q0 = phat(beta) + d.b(Q, k) - d.b(P, j) - d.c[J];
+    const Vec6 phb = rot6(RP, mc.phi_loc(P, j, j) * xbP) + rot6(RQ, mc.phi_loc(Q, k, k) * xbQ);
+    const Vec6 q0 = phb + d.b(Q, k) - d.b(P, j) - d.c[J];
     const Vec6 u = D * (D.transpose() * q0);
     e += 2 * (mc.W(node, phat(u)) - u);
     eta += q0.dot(u);
@@ -373,9 +376,9 @@ void bias_node(MetricCache& mc, const State& st, int node) {
   // p = −sign·Φ_X(·, sJ) e + 2 Ψ_X(·, sJ) m_X + p_X (m_X = sign·β), with β, e rotated into X's
   // frame once.
   int ci = 0;
-  auto side = [&](int X, int hX, int sJ, double sign, bool leaf) {
+  auto side = [&](int X, int hX, int sJ, double sign, bool leaf, const Vec6& xb) {
     const Mat3& Rx = mc.R(X);
-    const Vec6 xb = rot6t(Rx, beta), xe = rot6t(Rx, e);
+    const Vec6 xe = rot6t(Rx, e);
     for (int i = 0; i < hX; ++i) {
       if (i == sJ) continue;
       const CBlockMap F = mc.phi_loc(X, i, sJ);
@@ -385,8 +388,8 @@ void bias_node(MetricCache& mc, const State& st, int node) {
       pv(node, ci++) = rot6(Rx, lp) + (leaf ? Vec6::Zero() : Vec6(pv(X, i)));
     }
   };
-  side(P, hP, j, -1.0, leafP);
-  side(Q, hQ, k, 1.0, leafQ);
+  side(P, hP, j, -1.0, leafP, xbP);
+  side(Q, hQ, k, 1.0, leafQ, xbQ);
 }
 
 // The full-articulated coefficients of the selection (§9) and the metric coefficients (§8), for
@@ -437,6 +440,7 @@ void metric_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad, boo
     }
   }
   d.diag.nodes_bottom_up = full + bias;
+  ad.body_terms_current = true;
   ad.q_cached = st.q;
   ad.metric_cached = true;
   ad.report.metric_nodes_full = full;
@@ -461,7 +465,9 @@ void lock_velocities(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   for (int k = 1; k < m.nbodies && !any; ++k)
     any = !joint_active[k] && m.v_num[k] > 0 && !st.qd.segment(m.v_adr[k], m.v_num[k]).isZero(0);
   if (!any) return;
-  body_dynamics_terms(m, d, st);   // I_k, v_k with every joint's q̇
+  // I_k, v_k with every joint's q̇ (already in Data when the selection's full pass just ran).
+  if (!ad.body_terms_current) body_dynamics_terms(m, d, st);
+  ad.body_terms_current = false;
   auto& h = ad.scratch_h;   // subtree momentum at r_k (a force-like vector)
   std::fill(h.begin(), h.end(), Vec6::Zero());
   for (int k = m.nbodies - 1; k >= 1; --k) {
@@ -561,6 +567,7 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
   }
   // V1: inactive joints do not move; moving ones are locked impulsively.
   lock_velocities(m, d, st, ad);
+  ad.body_terms_current = false;
 }
 
 }  // namespace
@@ -574,6 +581,7 @@ void set_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
       throw std::invalid_argument("set_active_region: active region is not a rooted subtree");
   }
   forward_kinematics(m, d, st.q);
+  ad.body_terms_current = false;
   build_region(m, d, st, ad);
   ad.region_selected = false;   // an explicit region: no selection to check against
 }
@@ -720,6 +728,7 @@ static void reduced_kinematics(const Model& m, Data& d, const State& st,
 const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const State& st,
                                                  AdaptiveData& ad) noexcept {
   const auto& t = m.tree;
+  ad.body_terms_current = false;   // composite inertias overwrite Data::I of reference bodies
   // 1. Reduced kinematics and velocities across active joints, in body order.
   reduced_kinematics(m, d, st, ad);
   // 2. External loads into the frontier nodes, then composite coefficients (§6.2).

@@ -25,6 +25,12 @@
 // its bound (ε, or (1 + estimate_growth)× its value in budget mode). A steady scene therefore
 // reselects rarely (the interval grows ×4 per selection up to interval_max), a changing one often.
 // reselect_every > 0 keeps the fixed count.
+// A selection is cheap (incremental_metric, ALGORITHMS §10.2/§10.4): under V1 only the active
+// region's joints move between selections, so every other node keeps its configuration-only
+// coefficients Φ, W, Ψ (cached in its reference body's frame, rotated on use) and recomputes only
+// its bias terms b, β, p, η by matrix–vector recurrences; the nodes with a moved joint — at most
+// the old region's — are assembled in full. The result equals the full recompute up to round-off
+// (tested), and every exact_refresh_every-th selection is that full recompute (§10.4-A).
 #pragma once
 
 #include <vector>
@@ -106,6 +112,7 @@ struct AdaptiveData {
   bool metric_cached = false;
   int selections_since_refresh = 0;
   std::vector<char> node_moved, world_ok, scratch_joint_moved;
+  bool body_terms_current = false;   // Data's v, I are body_dynamics_terms of the current state
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;
