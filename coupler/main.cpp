@@ -77,7 +77,8 @@ int main(int argc, char** argv) {
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);
-    if (const auto w = haptree::bus::raise_io_thread(handler.native_handle(), rt_report); !w.empty())
+    // above the loop: the handler brings the snapshots (and the poses over udpm) to a loop that may spin
+    if (const auto w = haptree::bus::set_io_thread_priority(handler.native_handle(), rt_report, true); !w.empty())
       spdlog::warn("coupler: real-time: {}", w);
     haptree::Coupler coupler(bus, o);
     const int rc = coupler.run(g_stop);

@@ -119,6 +119,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
   double next = t0, next_mirror = t0, next_report = t0 + 1.0;
   device::DeviceReading r;
   lcmt_device_state msg{};
+  bool mirror_due = false;
   while (!stop.load(std::memory_order_relaxed)) {
     const double t = now_s();
     if (device_->read(t - t0, r).ok()) {
@@ -128,19 +129,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       if (shm_state_) {
         shm_state_->write_msg(msg);
         shm_states_[static_cast<size_t>(msg.seq % kStateRing)] = msg;
-        if (opt_.mirror_rate_hz > 0 && t >= next_mirror) {
-          // Mirror pairs the coupler actually used: the newest FEEDBACK with the device state it answers,
-          // so every mirrored FEEDBACK can be replayed (replay_coupling) whatever the mirror rate.
-          const lcmt_device_state& used = shm_states_[static_cast<size_t>(fb_shm_.echo_device_seq % kStateRing)];
-          if (fb_shm_.seq > mirrored_feedback_seq_ && fb_shm_.echo_device_seq > 0 && used.seq == fb_shm_.echo_device_seq) {
-            bus_.publish(ch_state_, used);
-            bus_.publish(ch_feedback_, fb_shm_);
-            mirrored_feedback_seq_ = fb_shm_.seq;
-          } else {
-            bus_.publish(ch_state_, msg);
-          }
-          next_mirror = t + 1.0 / opt_.mirror_rate_hz;
-        }
+        mirror_due = opt_.mirror_rate_hz > 0 && t >= next_mirror;   // published after the answer (below)
       } else {
         bus_.publish(ch_state_, msg);
       }
@@ -171,6 +160,22 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       while (now_s() < next && !stop.load(std::memory_order_relaxed) &&
              last_echo_.load(std::memory_order_relaxed) < r.seq)
         poll_shm_feedback();
+    }
+    if (mirror_due) {
+      // Mirror pairs the coupler actually used: the newest FEEDBACK with the device state it answers,
+      // so every mirrored FEEDBACK can be replayed (replay_coupling) whatever the mirror rate. After the
+      // answer to this tick's pose: two udpm sends between a pose and its answer were the shm link's p99
+      // (docs/benchmarks.md, issue 15.1).
+      const lcmt_device_state& used = shm_states_[static_cast<size_t>(fb_shm_.echo_device_seq % kStateRing)];
+      if (fb_shm_.seq > mirrored_feedback_seq_ && fb_shm_.echo_device_seq > 0 && used.seq == fb_shm_.echo_device_seq) {
+        bus_.publish(ch_state_, used);
+        bus_.publish(ch_feedback_, fb_shm_);
+        mirrored_feedback_seq_ = fb_shm_.seq;
+      } else {
+        bus_.publish(ch_state_, msg);
+      }
+      next_mirror = t + 1.0 / opt_.mirror_rate_hz;
+      mirror_due = false;
     }
     bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
                              stop);

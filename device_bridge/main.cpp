@@ -44,7 +44,9 @@ int main(int argc, char** argv) {
   try {
     haptree::bus::Bus bus(b.lcm_url);
     haptree::bus::HandlerThread handler(bus);
-    if (const auto w = haptree::bus::raise_io_thread(handler.native_handle(), rt_report); !w.empty())
+    // over udpm the handler brings the feedback: above the loop; over shm it carries nothing the loop
+    // waits for: below, so the group's datagrams never delay a pose's answer
+    if (const auto w = haptree::bus::set_io_thread_priority(handler.native_handle(), rt_report, !o.shm); !w.empty())
       spdlog::warn("device_bridge: real-time: {}", w);
     haptree::DeviceBridge bridge(bus, o);
     const int rc = bridge.run(g_stop);

@@ -86,7 +86,43 @@ run() {   # link load name copts dopts rate
   echo "$link,$load,$name,\"$copts\",\"$dopts\",${p50:-nan},${p99:-nan},${p999:-nan},${n:-0},$rate_meas,$load1,\"${refused}\"" >>"$csv"
   rm -rf "$dir"
 }
+# The machine's own floor: wake-up latency of a SCHED_FIFO 80 timer thread per CPU (cyclictest, Debian
+# rt-tests), 1 ms interval, same duration and load. What a preempted vCPU or a long interrupt costs shows
+# here too, and no option of ours can remove it.
+floor() {   # load
+  local load=$1 stress=""
+  [[ "floor/$load" =~ $filter ]] || return 0
+  command -v cyclictest >/dev/null || { echo "floor/$load: cyclictest not installed (apt-get install rt-tests)"; return 0; }
+  if [ "$load" = stress ]; then
+    stress-ng --cpu 1 --timeout $((duration + 5)) >/dev/null 2>&1 &
+    stress=$!
+    sleep 0.5
+  fi
+  local out
+  out=$(mktemp /tmp/latency.XXXXXX)
+  cyclictest -m -t 2 -a 0,1 -p 80 -i 1000 -D "$duration" -q -h 5000 >"$out" 2>&1 || true
+  if [ -n "$stress" ]; then kill -TERM "$stress" 2>/dev/null || true; wait "$stress" 2>/dev/null || true; fi
+  local load1
+  load1=$(cut -d' ' -f1 /proc/loadavg)
+  for cpu in 0 1; do
+    awk -v c=$((cpu + 2)) -v cpu=$cpu -v load="$load" -v l1="$load1" -v csv="$csv" '
+      !/^#/ && NF >= 3 { n[$1 + 0] = $c + 0; tot += $c }
+      END {
+        acc = 0; p50 = p99 = p999 = "nan"
+        for (us = 0; us < 5000; ++us) { acc += n[us]
+          if (p50 == "nan" && acc >= 0.5 * tot) p50 = us
+          if (p99 == "nan" && acc >= 0.99 * tot) p99 = us
+          if (p999 == "nan" && acc >= 0.999 * tot) p999 = us }
+        if (p999 == "nan") p999 = ">5000"
+        name = "cyclictest-fifo80-cpu" cpu
+        printf "%-5s %-6s %-24s %9s %9s %9s %7d %9s %5s %s\n", "floor", load, name, p50, p99, p999, tot, "-", l1, "-"
+        printf "floor,%s,%s,\"\",\"\",%s,%s,%s,%d,,%s,\"\"\n", load, name, p50, p99, p999, tot, l1 >> csv
+      }' "$out"
+  done
+  rm -f "$out"
+}
 for load in none stress; do
+  floor "$load"
   for s in "${shm_sets[@]}"; do IFS='|' read -r name copts dopts <<<"$s"; run shm "$load" "$name" "$copts" "$dopts" 20000; done
   for s in "${udpm_sets[@]}"; do IFS='|' read -r name copts dopts <<<"$s"; run udpm "$load" "$name" "$copts" "$dopts" 10000; done
 done

@@ -155,14 +155,15 @@ void log_realtime_report(const RealtimeReport& r, const std::string& process) {
   for (const auto& s : r.notes) spdlog::info("{}: real-time: note: {}", process, s);
 }
 
-std::string raise_io_thread(std::thread::native_handle_type thread, const RealtimeReport& r) {
+std::string set_io_thread_priority(std::thread::native_handle_type thread, const RealtimeReport& r, bool above_loop) {
   if (!r.fifo) return "";
   sched_param p{};
-  p.sched_priority = std::min(r.fifo_priority + 1, sched_get_priority_max(SCHED_FIFO));
+  p.sched_priority = std::clamp(r.fifo_priority + (above_loop ? 1 : -1), sched_get_priority_min(SCHED_FIFO),
+                                sched_get_priority_max(SCHED_FIFO));
   const int e = pthread_setschedparam(thread, SCHED_FIFO, &p);
   if (e == 0) return "";
   return "I/O thread SCHED_FIFO priority " + std::to_string(p.sched_priority) + " refused (" + errno_name(e) +
-         "); it keeps the loop's priority (a spinning loop on its CPU delays its messages)";
+         "); it keeps the loop's priority";
 }
 
 std::vector<int> parse_cpu_list(const std::string& text, std::string* error) {

@@ -4,8 +4,8 @@
 //   RealtimeOptions rt; add_realtime_options(app, rt);            // realtime_cli.hpp
 //   CLI11_PARSE(...); log_realtime_report(apply_realtime(rt), "coupler");   // before any thread starts
 // Call it before the process creates its threads: Linux applies policy and affinity per thread, and a new
-// thread inherits its creator's. An I/O thread that blocks (the LCM handler) then gets one priority above
-// the loop with raise_io_thread(), so a loop that spins never starves it.
+// thread inherits its creator's. An I/O thread that blocks (the LCM handler) then gets a priority next to
+// the loop's with set_io_thread_priority().
 #pragma once
 
 #include <string>
@@ -37,9 +37,13 @@ RealtimeReport apply_realtime(const RealtimeOptions& o);
 // Logs the report at info (applied, notes) and warn (refused) level, prefixed with the process name.
 void log_realtime_report(const RealtimeReport& r, const std::string& process);
 
-// Gives a blocking I/O thread SCHED_FIFO at the loop's priority + 1 (when the loop got SCHED_FIFO), so it
-// preempts a spinning loop on its CPU when a message arrives. Returns "" or a refusal in plain words.
-std::string raise_io_thread(std::thread::native_handle_type thread, const RealtimeReport& r);
+// Gives a blocking I/O thread SCHED_FIFO next to the loop's priority (when the loop got SCHED_FIFO):
+//  above_loop: priority + 1, it preempts a spinning loop on its CPU when a message arrives (the thread
+//    carries what the loop needs: poses and feedback over udpm, snapshots);
+//  otherwise priority - 1, it never delays the loop (with every udpm datagram of the group waking each
+//    process's handler, a handler above the loop stalled the shm pose-to-force path).
+// Returns "" or a refusal in plain words.
+std::string set_io_thread_priority(std::thread::native_handle_type thread, const RealtimeReport& r, bool above_loop);
 
 // "0", "0,1", "2-3", "0,2-3" -> sorted unique CPU ids. On a syntax error returns {} and sets *error.
 std::vector<int> parse_cpu_list(const std::string& text, std::string* error);

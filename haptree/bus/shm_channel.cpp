@@ -56,7 +56,10 @@ using detail::ShmSegment;
 
 namespace {
 
-constexpr int64_t kLivenessCheckNs = 5'000'000;   // a reader re-checks its writer's pid every 5 ms
+constexpr int64_t kLivenessCheckNs = 5'000'000;   // a reader re-checks its writer's pid every 5 ms (kill 0)
+// ... and the pid's start time (pid reuse, zombie) every second: reading /proc/PID/stat took 68 µs median,
+// 146 µs p99 on the 2-core host, inside a pose's path to its force every 5 ms (docs/benchmarks.md, 15.1).
+constexpr int64_t kStartTimeCheckNs = 1'000'000'000;
 constexpr int64_t kReopenEveryNs = 20'000'000;    // and looks for a (new) segment every 20 ms when it has none
 constexpr int64_t kYoungSegmentNs = 5'000'000'000;
 constexpr int64_t kForeignLayoutAgeNs = 3600'000'000'000;
@@ -368,9 +371,13 @@ bool ShmReader::writer_ok(int64_t now_ns) noexcept {
   const auto& h = seg_->header;
   if (h.writer_closed.load(std::memory_order_acquire)) return false;
   const uint64_t inst = h.writer_instance.load(std::memory_order_relaxed);
-  if (inst != checked_instance_ || now_ns - checked_ns_ >= kLivenessCheckNs) {
+  if (inst != checked_instance_ || now_ns - full_checked_ns_ >= kStartTimeCheckNs) {
     writer_alive_ = process_alive(h.writer_pid.load(), h.writer_proc_start.load());
     checked_instance_ = inst;
+    checked_ns_ = full_checked_ns_ = now_ns;
+  } else if (writer_alive_ && now_ns - checked_ns_ >= kLivenessCheckNs) {
+    const pid_t pid = static_cast<pid_t>(h.writer_pid.load());   // one syscall: gone (ESRCH) or there
+    writer_alive_ = pid > 0 && (::kill(pid, 0) == 0 || errno == EPERM);
     checked_ns_ = now_ns;
   }
   return writer_alive_;

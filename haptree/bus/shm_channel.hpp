@@ -161,6 +161,7 @@ class ShmReader : public ShmChannel {
   int64_t next_open_ns_ = 0;     // rate limit of (re)open attempts
   uint64_t checked_instance_ = 0;
   int64_t checked_ns_ = 0;
+  int64_t full_checked_ns_ = 0;   // last /proc start-time check (writer_ok)
   bool writer_alive_ = false;
   uint64_t last_ = 0;
   int64_t rejected_ = 0, skipped_ = 0, retries_ = 0, stale_ = 0, reopened_ = 0;

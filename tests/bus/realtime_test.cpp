@@ -15,6 +15,7 @@
 #include <fstream>
 #include <functional>
 #include <string>
+#include <thread>
 
 #include "haptree/bus/realtime_cli.hpp"
 
@@ -234,6 +235,41 @@ TEST(RealtimeApply, MlockallAndTimerSlackWhenPermitted) {
   } else {
     EXPECT_TRUE(out.find("A:mlockall") != std::string::npos || out.find("R:mlockall refused") != std::string::npos)
         << out;
+  }
+}
+
+TEST(RealtimeApply, IoThreadNextToTheLoopPriority) {
+  const bool permitted = fifo_permitted(11);
+  const std::string out = in_child([] {
+    RealtimeOptions o;
+    o.sched_fifo = 10;
+    const RealtimeReport r = apply_realtime(o);
+    std::string s;
+    for (bool above : {true, false}) {
+      int fd[2];
+      if (pipe(fd) != 0) return std::string("pipe failed");
+      std::thread t([&] {   // blocks in read() until released: it never runs under SCHED_FIFO for long
+        char c;
+        (void)!read(fd[0], &c, 1);
+      });
+      const std::string w = set_io_thread_priority(t.native_handle(), r, above);
+      int policy = -1;
+      sched_param p{};
+      pthread_getschedparam(t.native_handle(), &policy, &p);
+      s += "[" + w + "] policy=" + std::to_string(policy) + " prio=" + std::to_string(p.sched_priority) + "\n";
+      (void)!write(fd[1], "x", 1);
+      t.join();
+      close(fd[0]);
+      close(fd[1]);
+    }
+    return s;
+  });
+  if (permitted) {
+    EXPECT_EQ(out, "[] policy=" + std::to_string(SCHED_FIFO) + " prio=11\n[] policy=" + std::to_string(SCHED_FIFO) +
+                       " prio=9\n");
+  } else {   // the loop stayed SCHED_OTHER: the thread is left alone, nothing to say
+    EXPECT_EQ(out, "[] policy=" + std::to_string(SCHED_OTHER) + " prio=0\n[] policy=" + std::to_string(SCHED_OTHER) +
+                       " prio=0\n");
   }
 }
 
