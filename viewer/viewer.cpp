@@ -600,6 +600,7 @@ void Viewer::Impl::tick() {
       j["p99_us"] = s.p99_us;
       j["age_ms"] = s.snapshot_age_ms;
       j["watchdog"] = (s.flags & lcmt_feedback::FLAG_WATCHDOG) != 0;
+      j["stale"] = (s.flags & lcmt_feedback::FLAG_STALE) != 0;
       j["clamped"] = (s.flags & lcmt_feedback::FLAG_CLAMPED) != 0;
       j["watchdog_events"] = s.watchdog_events;
       j["clamp_events"] = s.clamp_events;

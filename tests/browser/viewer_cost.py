@@ -1,11 +1,15 @@
 """Cost of the viewer to the sim and the coupler, and the viewer's frame rate in headless chromium.
 
-  /usr/bin/python3 tests/browser/viewer_cost.py build/tools/haptree_run [SECONDS]
+  /usr/bin/python3 tests/browser/viewer_cost.py build/tools/haptree_run [SECONDS] [--only tab]
 
 Runs the bacteriorhodopsin session (README: --dt 0.0005 --position-scale 1 --stiffness 200) three times
 for SECONDS (default 20) each: no viewer; viewer with no tab; viewer with one headless chromium tab
 (SwiftShader). Prints a markdown table from the launcher's own summary lines (sim steps, mean sampled
-step, coupler iterations, device pose-to-force latency p50/p99) and the tab's frames/s (dataset.frames)."""
+step, coupler iterations, device pose-to-force latency p50/p99) and the tab's frames/s (dataset.frames),
+then the page's own JavaScript time per frame (dataset.msFrame/msPos/msOverlay: running means) and, where
+the page has the hook, SwiftShader's time per draw with and without each representation
+(haptreeRasterMs). `--only tab` runs the tab configuration alone (the frame-rate figures).
+HAPTREE_VIEWER_WEB_DIR=DIR serves another copy of the page (e.g. an older one, to compare)."""
 import os
 import re
 import socket
@@ -42,6 +46,7 @@ def run(exe, seconds, mode):
         b = cdp.Browser()
         try:
             page = b.new_page(f"http://127.0.0.1:{port}/")
+            page.call("Page.bringToFront")   # a background tab gets no animation frames
             t_end = time.time() + 120
             while time.time() < t_end and page.eval("(document.body && document.body.dataset.ready) || ''") != "1":
                 time.sleep(0.5)
@@ -50,6 +55,11 @@ def run(exe, seconds, mode):
             time.sleep(min(10, seconds / 2))
             f1, t1 = int(page.eval("document.body.dataset.frames")), time.time()
             fps = (f1 - f0) / (t1 - t0)
+            page_ms = {k: page.eval(f"document.body.dataset.{k} || ''") for k in
+                       ("msFrame", "msPos", "msOverlay", "msCartoon", "cartoonUpdates", "direct", "directWhy", "error")}
+            page_ms["fps"] = f"{fps:.1f}"
+            page_ms["raster"] = page.eval("window.haptreeRasterMs ? JSON.stringify(haptreeRasterMs(10)) : ''")
+            print("page:", page_ms, flush=True)
             rest = p.communicate()[0]
         finally:
             b.quit()
@@ -64,8 +74,9 @@ def run(exe, seconds, mode):
 
 def main():
     exe = sys.argv[1]
-    seconds = float(sys.argv[2]) if len(sys.argv) > 2 else 20
-    rows = [run(exe, seconds, m) for m in ("off", "no_tab", "tab")]
+    seconds = float(sys.argv[2]) if len(sys.argv) > 2 and not sys.argv[2].startswith("-") else 20
+    modes = ("tab",) if "--only" in sys.argv else ("off", "no_tab", "tab")
+    rows = [run(exe, seconds, m) for m in modes]
     print(f"| viewer | sim steps in {seconds:.0f} s | mean sampled step ms | coupler iterations (user 0) | "
           "pose-to-force p50 us | p99 us | tab frames/s |")
     print("|---|---|---|---|---|---|---|")

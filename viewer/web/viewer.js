@@ -11,11 +11,17 @@ window.addEventListener('error', (e) => { body.dataset.error = String(e.message 
 const stage = new NGL.Stage('stage', { backgroundColor: 'white', tooltip: false, quality: 'low', sampleLevel: 0 });
 window.addEventListener('resize', () => stage.handleResize());
 
-let hello = null, comp = null, ballRepr = null, overlay = null;
+let hello = null, comp = null, ballRepr = null, cartoonRepr = null, overlay = null;
 let frame = null, pendingPositions = null, framesRendered = 0;
 let activeOfPoint = null, maskDirty = false, lastMaskUpdate = 0;
 let grab = null;
-let tPos = 0, tOv = 0;                      // {i, p: NGL.Vector3, x, y}
+let tPos = 0, tOv = 0, tFrame = 0;
+// Per frame the page moves the ball-and-stick buffers itself (direct: sphere centres and bond ends copied
+// from the frame through index maps, no NGL proxies); the cartoon (a spline through the backbone, the
+// costly rebuild) follows at a lower rate: at most once per CARTOON_MIN_MS, and never more than ~10 % of
+// the page's time (interval >= 10 x its last cost).
+const CARTOON_MIN_MS = 250, HUD_MIN_MS = 200;
+let direct = null, lastCartoon = 0, cartoonMs = 0, lastHud = 0, cartoonUpdates = 0;
 const fpsTimes = [];
 
 const scheme = NGL.ColormakerRegistry.addScheme(function () {
@@ -44,7 +50,7 @@ async function onHello(m) {
   setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}` : `spectator (all ${m.users} users taken) — ${m.scene}`);
   comp = await stage.loadFile('/scene.pdb', { ext: 'pdb', defaultRepresentation: false });
   if (m.kind === 'molecule') {
-    comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
+    cartoonRepr = comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
     ballRepr = comp.addRepresentation('ball+stick', { color: scheme, sele: 'not hydrogen', aspectRatio: 1.5, radiusScale: 0.6 });
   } else {
     // bodies: a sphere per body origin, a stick per joint; size from the typical joint spacing
@@ -107,6 +113,14 @@ function drawOverlay(f) {
   arrows.setAttributes({ position1: a1, position2: a2, radius: ar });
 }
 
+// The coupler's flags of the same FEEDBACK message as |f|: the watchdog gain is below 1 either because
+// the inputs are stale (the gain falls to 0 within 5 ms) or because they are fresh again and the gain
+// climbs back over 100 ms; the force is then at most gain x the clamp.
+function watchdogState(u) {
+  if (!u.watchdog) return 'ok';
+  return u.stale ? 'stale' : 'ramp-in';
+}
+
 function hud(f, fps) {
   const rows = [
     ['sim step', `${f.step_ms.toFixed(2)} ms (${Math.round(f.sim_rate)} steps/s)`],
@@ -118,7 +132,9 @@ function hud(f, fps) {
   for (const u of f.users) {
     const col = USER_COLOURS[u.id % USER_COLOURS.length];
     const frac = u.max_force_n > 0 ? Math.min(1, u.fn / u.max_force_n) : 0;
-    const wd = u.watchdog ? '<b style="color:#c00">WATCHDOG</b>' : 'ok';
+    const ws = watchdogState(u);
+    const wd = ws === 'ok' ? 'ok' : ws === 'stale' ? '<b style="color:#c00">WATCHDOG: stale, force ramping to 0</b>'
+      : '<b style="color:#b60">watchdog: fresh again, force ramping in</b>';
     html += `<tr><td class="k" style="color:${col}">user ${u.id}${u.id === f.you ? ' (you)' : ''}</td>` +
       `<td>|f| ${u.fn.toFixed(3)} N${u.clamped ? ' (clamped)' : ''}</td>` +
       `<td><span class="bar"><i style="width:${(100 * frac).toFixed(0)}%;background:${col}"></i></span></td></tr>` +
@@ -128,16 +144,90 @@ function hud(f, fps) {
   document.getElementById('hudtab').innerHTML = html;
 }
 
+// Index maps from the frame's points to the ball-and-stick buffers (sphere k = k-th selected atom, cylinder
+// k = k-th bond of the selection, NGL's order), checked once against the buffers NGL built: if they do not
+// match (another NGL, mesh instead of impostor buffers) the page falls back to NGL's own update.
+function makeDirect() {
+  const data = ballRepr.repr.dataList && ballRepr.repr.dataList[0];
+  if (!data || !data.bufferList || !data.bufferList.length) return null;   // not built yet: next frame
+  if (data.bufferList.length !== 2) return `${data.bufferList.length} buffers`;
+  const isCyl = (b) => !!(b.geometry && b.geometry.attributes.position1);   // NGL lists the bonds first
+  const cb = data.bufferList.find(isCyl), sb = data.bufferList.find((b) => !isCyl(b));
+  if (!cb || !sb) return 'no sphere and cylinder buffers';
+  // NGL's own order: ask the representation for its atom and bond data with every atom placed at x =
+  // its index (exact in float32 below 2^24), then put the coordinates back.
+  const repr = ballRepr.repr, st = comp.structure.atomStore, n = comp.structure.atomCount;
+  const keep = [st.x.slice(0, n), st.y.slice(0, n), st.z.slice(0, n)];
+  for (let i = 0; i < n; ++i) { st.x[i] = i; st.y[i] = 0; st.z[i] = 0; }
+  let ad, bd;
+  try {
+    ad = repr.getAtomData(data.sview, { position: true });
+    bd = repr.getBondData(data.sview, { position: true });
+  } finally {
+    st.x.set(keep[0]); st.y.set(keep[1]); st.z.set(keep[2]);
+  }
+  const every3 = (a) => Int32Array.from({ length: a.length / 3 }, (_, k) => a[3 * k]);
+  const ai = every3(ad.position), i1 = every3(bd.position1), i2 = every3(bd.position2);
+  const d = { sb, cb, ai, i1, i2, sp: new Float32Array(3 * ai.length), p1: new Float32Array(3 * i1.length),
+    p2: new Float32Array(3 * i2.length) };
+  // the check: NGL's impostor buffers hold each centre mappingSize times, the first copy at 3*k*mappingSize
+  const bad = (buf, idx, name) => {
+    const a = buf.geometry && buf.geometry.attributes[name], ms = buf.mappingSize;
+    if (!a || !ms || buf.size !== idx.length) return `${name}: ${!a ? 'no attribute' : !ms ? 'not mapped' : `${buf.size} != ${idx.length}`}`;
+    const x = comp.structure.atomStore;
+    for (let k = 0; k < idx.length; k += Math.max(1, idx.length >> 6)) {
+      const o = 3 * k * ms, i = idx[k];
+      if (Math.abs(a.array[o] - x.x[i]) > 1e-3 || Math.abs(a.array[o + 1] - x.y[i]) > 1e-3 ||
+          Math.abs(a.array[o + 2] - x.z[i]) > 1e-3) return `${name}: item ${k} is not atom ${i}`;
+    }
+    return '';
+  };
+  const why = bad(sb, ai, 'position') || bad(cb, i1, 'position1') || bad(cb, i2, 'position2');
+  if (!why) direct = d;
+  return why;
+}
+// For tests: why the direct update is off ('' = on).
+window.haptreeDirectCheck = () => (ballRepr ? makeDirect() ?? 'not built' : 'no ball+stick');
+function gather(out, idx, pos) {
+  for (let k = 0; k < idx.length; ++k) {
+    const s = 3 * idx[k], o = 3 * k;
+    out[o] = pos[s]; out[o + 1] = pos[s + 1]; out[o + 2] = pos[s + 2];
+  }
+}
+function movePositions(pos, now) {
+  comp.structure.updatePosition(pos, false);   // the atoms themselves: picking, the grab, the cartoon
+  if (direct === null && ballRepr) {
+    const why = makeDirect();
+    if (why) { direct = false; body.dataset.directWhy = why; }   // null: NGL still building, try again
+  }
+  if (direct) {
+    gather(direct.sp, direct.ai, pos);
+    gather(direct.p1, direct.i1, pos);
+    gather(direct.p2, direct.i2, pos);
+    direct.sb.setAttributes({ position: direct.sp });
+    direct.cb.setAttributes({ position1: direct.p1, position2: direct.p2 });
+  } else if (ballRepr) {   // also while NGL is still building: the update then waits for the build
+    ballRepr.update({ position: true });
+  }
+  if (cartoonRepr && now - lastCartoon >= Math.max(CARTOON_MIN_MS, 10 * cartoonMs)) {
+    const t0 = performance.now();
+    cartoonRepr.update({ position: true });
+    cartoonMs = performance.now() - t0;
+    lastCartoon = now;
+    cartoonUpdates += 1;
+    body.dataset.msCartoon = cartoonMs.toFixed(2);
+    body.dataset.cartoonUpdates = String(cartoonUpdates);
+  }
+  body.dataset.direct = direct ? '1' : '0';
+}
+
 function render(now) {
   requestAnimationFrame(render);
   if (!comp || !pendingPositions) return;
   const now0 = performance.now();
   const { pos, frame: f } = pendingPositions;
   pendingPositions = null;
-  if (pos.length === 3 * hello.points) {
-    comp.structure.updatePosition(pos, false);
-    comp.updateRepresentations({ position: true });
-  }
+  if (pos.length === 3 * hello.points) movePositions(pos, now);
   if (typeof f.active === 'string') {   // per body, sent when the active region changed
     const pb = hello.point_body;
     for (let i = 0; i < pb.length; ++i) activeOfPoint[i] = f.active.charCodeAt(pb[i]) === 49 ? 1 : 0;
@@ -150,10 +240,8 @@ function render(now) {
   }
   const t1 = performance.now();
   drawOverlay(f);
+  stage.viewer.requestRender();   // one draw per frame that arrived, none otherwise
   const t2 = performance.now();
-  tPos += t1 - now0; tOv += t2 - t1;
-  body.dataset.msPos = (tPos / (framesRendered + 1)).toFixed(2);
-  body.dataset.msOverlay = (tOv / (framesRendered + 1)).toFixed(2);
   fpsTimes.push(now);
   while (fpsTimes.length && now - fpsTimes[0] > 1000) fpsTimes.shift();
   framesRendered += 1;
@@ -163,7 +251,16 @@ function render(now) {
   body.dataset.grab = me && me.grab ? '1' : '0';
   body.dataset.grabBody = me && me.body ? String(me.body) : '0';
   body.dataset.clamped = me && me.clamped ? '1' : '0';
-  hud(f, fpsTimes.length);
+  body.dataset.watchdog = me ? watchdogState(me) : '';
+  if (now - lastHud >= HUD_MIN_MS) {   // the HUD is DOM layout: a few times a second is enough to read
+    hud(f, fpsTimes.length);
+    lastHud = now;
+  }
+  const t3 = performance.now();
+  tPos += t1 - now0; tOv += t2 - t1; tFrame += t3 - now0;
+  body.dataset.msPos = (tPos / framesRendered).toFixed(2);
+  body.dataset.msOverlay = (tOv / framesRendered).toFixed(2);
+  body.dataset.msFrame = (tFrame / framesRendered).toFixed(2);
 }
 requestAnimationFrame(render);
 
@@ -241,4 +338,26 @@ window.haptreePointOnScreen = (i) => {
   const c = stage.viewerControls.getPositionOnCanvas(p);
   const r = stage.viewer.renderer.domElement.getBoundingClientRect();
   return { x: r.left + c.x, y: r.top + (r.height - c.y) };
+};
+
+// For the benchmark (tests/browser/viewer_fps.py): ms per draw of the current scene, drawn n times and
+// waited for (a 1-pixel read makes the GL work finish), with all representations, without the cartoon,
+// without ball-and-stick, and with neither: where SwiftShader's time goes.
+window.haptreeRasterMs = (n) => {
+  const v = stage.viewer, gl = v.renderer.getContext(), px = new Uint8Array(4);
+  const time = () => {
+    v.render(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);   // warm
+    const t0 = performance.now();
+    for (let k = 0; k < n; ++k) { v.render(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px); }
+    return (performance.now() - t0) / n;
+  };
+  const out = { all: time() };
+  if (cartoonRepr) { cartoonRepr.setVisibility(false); out.no_cartoon = time(); cartoonRepr.setVisibility(true); }
+  if (ballRepr) { ballRepr.setVisibility(false); out.no_ball_stick = time(); ballRepr.setVisibility(true); }
+  if (cartoonRepr && ballRepr) {
+    cartoonRepr.setVisibility(false); ballRepr.setVisibility(false);
+    out.none = time();
+    cartoonRepr.setVisibility(true); ballRepr.setVisibility(true);
+  }
+  return out;
 };
