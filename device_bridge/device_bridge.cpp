@@ -157,6 +157,9 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     if (now_s() - feedback_time_s_.load(std::memory_order_acquire) <= opt_.feedback_timeout_s)
       f = clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
     device_->write_force(f);
+    const double step = (f - rendered_).norm();
+    if (step > max_force_step_n_.load(std::memory_order_relaxed)) max_force_step_n_.store(step, std::memory_order_relaxed);
+    rendered_ = f;
     last_force_n_.store(f.norm(), std::memory_order_relaxed);
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());
     next += period;

@@ -45,6 +45,8 @@ class DeviceBridge {
   int64_t feedbacks() const { return feedbacks_.load(); }
   double last_force_n() const { return last_force_n_.load(); }
   double max_force_seen_n() const { return max_force_n_.load(); }
+  // Largest change of the rendered force between two device ticks (N): what the hand feels as a jerk.
+  double max_force_step_n() const { return max_force_step_n_.load(); }
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
   double latency_percentile_us(double q) const;
   uint64_t latency_samples() const;
@@ -80,7 +82,8 @@ class DeviceBridge {
   std::atomic<int64_t> last_echo_{0};
   bus::LatencyHistogram hist_;           // written by whoever receives feedback (one thread at a time)
   std::atomic<int64_t> readings_{0}, feedbacks_{0};
-  std::atomic<double> last_force_n_{0}, max_force_n_{0}, feedback_time_s_{-1};
+  std::atomic<double> last_force_n_{0}, max_force_n_{0}, max_force_step_n_{0}, feedback_time_s_{-1};
+  Vec3 rendered_ = Vec3::Zero();   // loop thread: the force written at the previous tick
 };
 
 }  // namespace haptree

@@ -41,9 +41,9 @@ int main(int argc, char** argv) {
     const int rc = bridge.run(g_stop);
     handler.stop();
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
-                 "p99 {:.1f} us ({} samples)",
+                 "p99 {:.1f} us ({} samples), max force step {:.4f} N/tick",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),
-                 bridge.latency_percentile_us(0.99), bridge.latency_samples());
+                 bridge.latency_percentile_us(0.99), bridge.latency_samples(), bridge.max_force_step_n());
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());
