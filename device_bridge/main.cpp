@@ -20,6 +20,10 @@ int main(int argc, char** argv) {
   app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
   app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
+  app.add_option("--max-force-rate-n-per-s", o.max_force_rate_n_per_s,
+                 "bound on any change of the rendered force, N/s (a jerk guard at the hand); 0: the clamp within "
+                 "5 ms, 600 N/s for 3 N. FEEDBACK older than 10 ms ramps to zero in 5 ms, and back in over 0.1 s")
+      ->check(CLI::Range(0.0, 1e6))->capture_default_str();
   app.add_flag("--busy-poll", o.busy_poll, "poll shared-memory feedback between ticks (latency benchmark)");
   CLI11_PARSE(app, argc, argv);
   for (const auto& s : kv) {

@@ -64,18 +64,21 @@ GuardedForce ForceSafety::apply(double now_s, double input_age_s, const Vec3& fo
     out.flags |= kSafetyNonFinite;
     ++nonfinite_events_;
   }
-  const double g = watchdog_.update(now_s, input_age_s);
-  if (watchdog_.stale()) out.flags |= kSafetyStale;
-  if (g < 1.0) out.flags |= kSafetyWatchdog;
-  f *= g;
-  t *= g;
+  // Clamp first, then the gain: the ramps then scale what the device feels, so they take at least
+  // ramp_down_s from the clamp to zero. (Gain first let a force far above the clamp stay clamped until the
+  // gain was small and then drop to zero within a fraction of the ramp: a step at the hand.)
   bool cf = false, ct = false;
-  out.force = clamp_norm(f, limits_.max_force, &cf);
-  out.torque = clamp_norm(t, limits_.max_torque, &ct);
+  f = clamp_norm(f, limits_.max_force, &cf);
+  t = clamp_norm(t, limits_.max_torque, &ct);
   if (cf || ct) {
     out.flags |= kSafetyClamped;
     ++clamp_events_;
   }
+  const double g = watchdog_.update(now_s, input_age_s);
+  if (watchdog_.stale()) out.flags |= kSafetyStale;
+  if (g < 1.0) out.flags |= kSafetyWatchdog;
+  out.force = g * f;
+  out.torque = g * t;
   return out;
 }
 

@@ -69,8 +69,9 @@ struct GuardedForce {
   int32_t flags = 0;  // SafetyFlag bits
 };
 
-// The whole chain in the order the coupler needs it: non-finite -> zero, times the watchdog gain, clamp.
-// Whatever goes in, what comes out is finite and within the limits.
+// The whole chain in the order the coupler needs it: non-finite -> zero, clamp, times the watchdog gain
+// (in [0, 1], so the result stays within the limits, and a ramp takes the felt force from the clamp to zero
+// in no less than ramp_down_s). Whatever goes in, what comes out is finite and within the limits.
 class ForceSafety {
  public:
   ForceSafety(const ForceLimits& limits, const WatchdogParams& watchdog) noexcept;
