@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 #include <thread>
 
@@ -26,6 +27,13 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   if (!pos(opt_.rate_hz)) throw std::invalid_argument("device_bridge: --rate-hz must be a positive rate");
   if (!pos(opt_.max_force_n)) throw std::invalid_argument("device_bridge: --max-force-n must be positive and finite");
   if (!pos(opt_.feedback_timeout_s)) throw std::invalid_argument("device_bridge: the feedback timeout must be positive");
+  if (!pos(opt_.feedback_ramp_down_s) || !pos(opt_.feedback_ramp_up_s))
+    throw std::invalid_argument("device_bridge: the feedback ramps must be positive");
+  if (!(std::isfinite(opt_.max_force_rate_n_per_s) && opt_.max_force_rate_n_per_s >= 0))
+    throw std::invalid_argument("device_bridge: --max-force-rate-n-per-s must be >= 0 (0: the clamp within 5 ms)");
+  feedback_watchdog_ = Watchdog(WatchdogParams{opt_.feedback_timeout_s, opt_.feedback_ramp_down_s, opt_.feedback_ramp_up_s});
+  const double rate = opt_.max_force_rate_n_per_s > 0 ? opt_.max_force_rate_n_per_s : opt_.max_force_n / opt_.feedback_ramp_down_s;
+  max_step_n_ = rate / opt_.rate_hz;
   if (!(std::isfinite(opt_.mirror_rate_hz) && opt_.mirror_rate_hz >= 0))
     throw std::invalid_argument("device_bridge: --mirror-rate-hz must be >= 0");
   if (opt_.device < 0) throw std::invalid_argument("device_bridge: --device must be >= 0");
@@ -135,17 +143,25 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       }
       readings_.fetch_add(1, std::memory_order_relaxed);
     }
-    // apply the latest feedback (zero when it is older than the timeout)
-    Vec3 f = Vec3::Zero();
+    // Apply the latest feedback: clamped, NaN -> 0, times the device's watchdog gain (older than the timeout:
+    // ramp to zero; fresh again: ramp back in), and no change faster than the rate limit. It used to cut to
+    // zero at the timeout and jump back to the full force with the next FEEDBACK: a step at the hand.
     if (shm_feedback_) {
       poll_shm_feedback();
       fb_ = fb_shm_;
     } else if (fb_box_.update()) {
       fb_ = fb_box_.front();
     }
-    if (now_s() - feedback_time_s_.load(std::memory_order_acquire) <= opt_.feedback_timeout_s)
-      f = clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
+    const double t_fb = feedback_time_s_.load(std::memory_order_acquire);
+    const double now = now_s();
+    const double g = feedback_watchdog_.update(now, t_fb < 0 ? std::numeric_limits<double>::infinity() : now - t_fb);
+    const Vec3 target = g * clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
+    const Vec3 d = target - rendered_;
+    const Vec3 f = d.norm() <= max_step_n_ ? target : Vec3(rendered_ + d * (max_step_n_ / d.norm()));
     device_->write_force(f);
+    const double step = (f - rendered_).norm();
+    if (step > max_force_step_n_.load(std::memory_order_relaxed)) max_force_step_n_.store(step, std::memory_order_relaxed);
+    rendered_ = f;
     last_force_n_.store(f.norm(), std::memory_order_relaxed);
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());
     next += period;
@@ -179,6 +195,12 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     }
     bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
                              stop);
+  }
+  // Stopping: down to zero at the rate limit (at most the ramp-down time), then zero.
+  for (int k = 0; k < 1000 && rendered_.norm() > 0; ++k) {
+    rendered_ -= clamp_norm(rendered_, max_step_n_);
+    device_->write_force(rendered_);
+    std::this_thread::sleep_for(std::chrono::duration<double>(period));
   }
   device_->write_force(Vec3::Zero());
   return 0;

@@ -18,6 +18,7 @@
 #include "haptree/device/device.hpp"
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
+#include "haptree/safety.hpp"
 
 namespace haptree {
 
@@ -27,8 +28,12 @@ struct DeviceBridgeOptions {
   std::map<std::string, std::string> options;    // device options (key=value), see haptree/device/registry.cpp
   double rate_hz = 1000;                         // device loop rate
   double max_force_n = 3.0;
-  double feedback_timeout_s = 0.01;              // no feedback for this long -> render zero; also the silence
-                                                 // after which another coupler instance may take over
+  double feedback_timeout_s = 0.01;              // no feedback for this long -> ramp to zero (feedback_ramp_down_s);
+                                                 // also the silence after which another coupler instance may take over
+  double feedback_ramp_down_s = 0.005;           // ramps of the device's own watchdog (as the coupler's): after the
+  double feedback_ramp_up_s = 0.1;               // timeout down to zero, and back once FEEDBACK arrives again
+  double max_force_rate_n_per_s = 0;             // bound on every change of the rendered force; 0: the clamp
+                                                 // within feedback_ramp_down_s (600 N/s for 3 N)
   bool shm = false;
   double mirror_rate_hz = 100;
   bool busy_poll = false;                        // poll shm feedback until this tick's answer (latency)
@@ -45,6 +50,8 @@ class DeviceBridge {
   int64_t feedbacks() const { return feedbacks_.load(); }
   double last_force_n() const { return last_force_n_.load(); }
   double max_force_seen_n() const { return max_force_n_.load(); }
+  // Largest change of the rendered force between two device ticks (N): what the hand feels as a jerk.
+  double max_force_step_n() const { return max_force_step_n_.load(); }
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
   double latency_percentile_us(double q) const;
   uint64_t latency_samples() const;
@@ -80,7 +87,10 @@ class DeviceBridge {
   std::atomic<int64_t> last_echo_{0};
   bus::LatencyHistogram hist_;           // written by whoever receives feedback (one thread at a time)
   std::atomic<int64_t> readings_{0}, feedbacks_{0};
-  std::atomic<double> last_force_n_{0}, max_force_n_{0}, feedback_time_s_{-1};
+  std::atomic<double> last_force_n_{0}, max_force_n_{0}, max_force_step_n_{0}, feedback_time_s_{-1};
+  Vec3 rendered_ = Vec3::Zero();   // loop thread: the force written at the previous tick
+  Watchdog feedback_watchdog_;     // loop thread: ramps instead of cutting when FEEDBACK stops and returns
+  double max_step_n_ = 0;          // max_force_rate_n_per_s / rate_hz: the largest change per tick
 };
 
 }  // namespace haptree

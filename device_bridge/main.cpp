@@ -25,6 +25,10 @@ int main(int argc, char** argv) {
   haptree::bus::add_realtime_options(app, rt,
                                      "after publishing a pose, poll shared-memory feedback until its answer arrives "
                                      "(then sleep to the next tick) instead of waiting for the next tick");
+  app.add_option("--max-force-rate-n-per-s", o.max_force_rate_n_per_s,
+                 "bound on any change of the rendered force, N/s (a jerk guard at the hand); 0: the clamp within "
+                 "5 ms, 600 N/s for 3 N. FEEDBACK older than 10 ms ramps to zero in 5 ms, and back in over 0.1 s")
+      ->check(CLI::Range(0.0, 1e6))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   o.busy_poll = rt.busy_poll;
   for (const auto& s : kv) {
@@ -52,9 +56,10 @@ int main(int argc, char** argv) {
     const int rc = bridge.run(g_stop);
     handler.stop();
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
-                 "p99 {:.1f} us ({} samples), p99.9 {:.1f} us",
+                 "p99 {:.1f} us ({} samples), p99.9 {:.1f} us, max force step {:.4f} N/tick",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),
-                 bridge.latency_percentile_us(0.99), bridge.latency_samples(), bridge.latency_percentile_us(0.999));
+                 bridge.latency_percentile_us(0.99), bridge.latency_samples(), bridge.latency_percentile_us(0.999),
+                 bridge.max_force_step_n());
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

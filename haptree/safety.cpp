@@ -64,9 +64,9 @@ GuardedForce ForceSafety::apply(double now_s, double input_age_s, const Vec3& fo
     out.flags |= kSafetyNonFinite;
     ++nonfinite_events_;
   }
-  // Clamp first, then the watchdog gain: the output is at most gain x the limit, so the ramps are ramps of
-  // what the device feels. (Gain first let a force far above the limit reach the clamp at a small gain:
-  // a "ramp-in" that jumped to the full limit within a few ms, shown as WATCHDOG with |f| at the clamp.)
+  // Clamp first, then the gain: the ramps then scale what the device feels, so they take at least
+  // ramp_down_s from the clamp to zero. (Gain first let a force far above the clamp stay clamped until the
+  // gain was small and then drop to zero within a fraction of the ramp: a step at the hand.)
   bool cf = false, ct = false;
   f = clamp_norm(f, limits_.max_force, &cf);
   t = clamp_norm(t, limits_.max_torque, &ct);

@@ -70,8 +70,8 @@ struct GuardedForce {
 };
 
 // The whole chain in the order the coupler needs it: non-finite -> zero, clamp, times the watchdog gain
-// (so what comes out is at most gain x the limit: the ramps are linear in the force the device feels).
-// Whatever goes in, what comes out is finite and within the limits.
+// (in [0, 1], so the result stays within the limits, and a ramp takes the felt force from the clamp to zero
+// in no less than ramp_down_s). Whatever goes in, what comes out is finite and within the limits.
 class ForceSafety {
  public:
   ForceSafety(const ForceLimits& limits, const WatchdogParams& watchdog) noexcept;

@@ -11,7 +11,7 @@ PKGS=(
   libmujoco-dev                                 # test-only external oracle
   libsimbody-dev libbullet-dev                  # peer engines for the side-by-side benchmark (optional at build time)
   python3 python3-matplotlib                    # benchmark plots
-  iproute2 util-linux                           # network-namespace tests (ip, unshare)
+  iproute2 util-linux nftables                  # network-namespace tests (ip, unshare; nft loss: docs/network_faults.md)
   tao-pegtl-dev                                 # mmCIF reading through gemmi (haptree/molecule)
   python3-dev pybind11-dev python3-pybind11 python3-numpy   # the haptree Python module (python/)
   python3-pytest python3-pandas                 # its tests (CTest label python) and the log reader's frames

@@ -3,7 +3,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <random>
 
@@ -200,6 +202,39 @@ TEST(Safety, PassivityObserver) {
   EXPECT_EQ(damper.suggested_damping(v, 1e-3), 0.0);
   active.add(Vec3(kNaN, 0, 0), v, dt);
   EXPECT_EQ(active.ignored(), 1);
+}
+
+
+// Issue 15.2: when the coupling force is above the clamp (a deep pull), the watchdog ramp must still take
+// the *felt* force to zero no faster than clamp / ramp_down_s. The gain used to be applied before the clamp:
+// a raw 30 N under a 3 N clamp stayed at 3 N until the gain fell below 0.1 and then dropped to zero in 0.5 ms
+// (600 N/s became 6000 N/s: a jerk at the hand), and it came back the same way after staleness.
+TEST(Safety, WatchdogRampOfAClampedForceIsNoSteeperThanTheClampOverTheRamp) {
+  ForceLimits lim;
+  lim.max_force = 3.0;
+  WatchdogParams wp;   // stale after 5 ms, down in 5 ms, up in 100 ms
+  ForceSafety safety(lim, wp);
+  const double dt = 1e-4;   // a 10 kHz coupler
+  const Vec3 raw(30.0, 0, 0);
+  Vec3 prev = Vec3::Zero();
+  double max_step = 0, min_force = 1e9, max_force = 0;
+  for (int k = 0; k < 4000; ++k) {   // 0.2 s fresh (ramp in), 0.1 s stale (ramp out), 0.1 s fresh again
+    const double t = k * dt;
+    const bool stale = k >= 2000 && k < 3000;
+    const GuardedForce out = safety.apply(t, stale ? 1.0 : 0.0, raw, Vec3::Zero());
+    if (k > 0) max_step = std::max(max_step, (out.force - prev).norm());
+    if (k >= 2000 && k < 3000) min_force = std::min(min_force, out.force.norm());
+    max_force = std::max(max_force, out.force.norm());
+    prev = out.force;
+  }
+  // Per call the gain changes by at most dt / ramp_down_s (the faster ramp): the felt force by at most
+  // max_force × dt / ramp_down_s = 0.06 N. Rounding: a few ulps of 3 N.
+  const double bound = lim.max_force * dt / wp.ramp_down_s;
+  std::printf("max step %.4f N per call (bound %.4f N), max |f| %.3f N, min while stale %.3f N\n", max_step, bound,
+              max_force, min_force);
+  EXPECT_LE(max_step, bound * (1 + 1e-9));
+  EXPECT_NEAR(max_force, lim.max_force, 1e-15 * lim.max_force * 4);   // clamp_norm: v × (max / |v|), a few ulps
+  EXPECT_EQ(min_force, 0.0);
 }
 
 }  // namespace
