@@ -770,7 +770,9 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
     }
     const int ref = ad.ref_body[F];
     const Vec6& V = ad.ref_velocity[F];
-    const Vec6 a0 = d.Iinv[ref] * (d.f_total[ref] - cross_force(V, d.I[ref] * V));
+    // p_bias too: the light-leaf form of dca_assemble reads a leaf's inertia and bias force.
+    d.p_bias[ref] = d.f_total[ref] - cross_force(V, d.I[ref] * V);
+    const Vec6 a0 = d.Iinv[ref] * d.p_bias[ref];
     // Handle point offsets from local data: 0 for the joint entering F (its successor is the
     // reference body), the predecessor-side offset for joints leaving F.
     auto offset = [&](int jx) {

@@ -68,6 +68,15 @@ Data::Data(const Model& model) {
   ca.assign(nc, Vec6::Zero());
   cb.assign(nc, Vec6::Zero());
   cluster_live.assign(nn, 0);
+  leaf_adr.assign(nn, -1);
+  leaf_side.assign(nn, 0);
+  int nleaf = 0;
+  for (int node = 0; node < nn; ++node) {
+    if (t.is_leaf(node)) continue;
+    const int P = t.P[node], Q = t.Q[node];
+    if ((t.is_leaf(P) && t.body[P] != 0) || (t.is_leaf(Q) && t.body[Q] != 0)) leaf_adr[node] = nleaf++;
+  }
+  leaf_F.assign(nleaf, Mat6::Zero());
 }
 
 }  // namespace haptree

@@ -383,9 +383,235 @@ void assemble_blocks_general(const Model& m, Data& d, int node) {
 
 }  // namespace
 
+namespace {
+
+// ---- Light-leaf form (issue 14.2) -----------------------------------------------------------
+// Joining a leaf body L to a subassembly O across J by the mobility formula Φ_L − Φ_L W Φ_L
+// subtracts two mobilities of size 1/I_L to leave one of size ~1/I_O: next to a light body (the
+// Cα–H body, smallest principal inertia 1000× below its neighbours') it loses digits like
+// ‖Φ_L‖/‖Φ_C‖, and q̈ loses them twice (Φ_C and W both carry the error): err ∝ r² at a light-body
+// ratio r (`stress_report --sections light`). In the spirit of Featherstone's more accurate DCA
+// (1999, part 2: keep an inertia where its inverse would cancel), the leaf enters through its
+// inertia K at the joint point, and O through B = Tᵀ Φ_O T: with a = Sα + Tγ ([S T] orthonormal),
+// f_J = Tλ + Sτ' on L and Tᵀ(a − a_O − c') = 0,
+//   λ = E(K_ts α + K_tt g − Tᵀ(f_L + p)),  E = (1 + K_tt B)⁻¹,  γ = g − Bλ,
+//   N α = V(f_L + p) + τ' − K_st Eᵀ g,     N = K_ss − K_st G K_ts,  G = B E,  V = Sᵀ − K_st G Tᵀ,
+// g = Tᵀ(s_O + b_O + c' − B̂ S τ'). Every matrix formed is a sum of like-signed terms when L is the
+// more mobile side (K_tt B small): L's mobility at J is R = Vᵀ N⁻¹ V + T G Tᵀ, the W of the
+// mobility form is Y = T E (K_tt − K_ts N⁻¹ K_st Eᵀ) Tᵀ, and ∂f_J/∂f_L = F = T E (K_ts N⁻¹ V − Tᵀ).
+// Signs: σ = +1 when L = Q, −1 when L = P (c' = σc, τ' = στ, q̈' = σq̈, f_J = σ f_c).
+using JointVec = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 6, 1>;
+using JointSq = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
+using DynMat = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
+using DynVec = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 6, 1>;
+
+struct LeafSides {
+  int L, O, sL, sO, b;   // leaf node, other node, their slots at J, the leaf's body
+  double sigma;
+};
+
+inline LeafSides leaf_sides(const Model& m, int node, int side) {
+  const auto& t = m.tree;
+  const bool q = side == 2;
+  const int L = q ? t.Q[node] : t.P[node], O = q ? t.P[node] : t.Q[node];
+  return {L, O, q ? t.slot_k[node] : t.slot_j[node], q ? t.slot_j[node] : t.slot_k[node],
+          t.body[L], q ? 1.0 : -1.0};
+}
+
+// Offset from the joint point r_J of the point of handle joint jx of leaf body b.
+inline Vec3 leaf_handle_offset(const Data& d, int b, int J, int jx) {
+  const Vec3 ex = jx == b ? Vec3::Zero() : d.d[jx];
+  return b == J ? ex : Vec3(ex - d.d[J]);
+}
+
+// L's inertia and bias force at the joint point.
+inline void leaf_inertia_at_joint(const Data& d, int b, int J, Mat6& K, Vec6& p) {
+  if (b == J) {
+    K = d.I[b];
+    p = d.p_bias[b];
+  } else {   // L holds p(J): r_J = r_b + d_J
+    const Mat6 X = motion_shift_matrix(-d.d[J]);
+    K = X.transpose() * d.I[b] * X;
+    K = 0.5 * (K + K.transpose());
+    p = shift_force(d.p_bias[b], d.d[J]);
+  }
+}
+
+// 0: mobility form; 1: P is a light leaf; 2: Q is. The leaf form is used for a leaf body (not the
+// ground) that is the more mobile side of a joint with constraints (nc = 0: W = 0, nothing cancels).
+int leaf_form_side(const Model& m, const Data& d, int node) {
+  const auto& t = m.tree;
+  if (d.leaf_adr.empty() || d.leaf_adr[node] < 0) return 0;
+  const int J = t.joint[node];
+  if (m.joint_type[J] == JointType::kFree) return 0;
+  const int P = t.P[node], Q = t.Q[node];
+  const double trP = d.Phi(P, t.handle_num[P], t.slot_j[node], t.slot_j[node]).trace();
+  const double trQ = d.Phi(Q, t.handle_num[Q], t.slot_k[node], t.slot_k[node]).trace();
+  const bool lp = t.is_leaf(P) && t.body[P] != 0, lq = t.is_leaf(Q) && t.body[Q] != 0;
+  // Only for a leaf at least twice as mobile as the other side: between comparable bodies the
+  // mobility form is as accurate and 2–3× cheaper (measured: a threshold of 1 doubled dca_bench's
+  // time and cost the binary tree 63 a factor 8 in error; 2 keeps bacteriorhodopsin's gain).
+  constexpr double kLeafRatio = 2.0;
+  if (lq && trQ > kLeafRatio * trP) return 2;
+  if (lp && trP > kLeafRatio * trQ) return 1;
+  return 0;
+}
+
+void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen::VectorXd& tau) {
+  const auto& t = m.tree;
+  const LeafSides ls = leaf_sides(m, node, side);
+  const int J = t.joint[node];
+  const int hL = t.handle_num[ls.L], hO = t.handle_num[ls.O], hC = t.handle_num[node];
+  JointMat S, T, Dj;
+  joint_subspaces(m, d, J, S, T, Dj);
+  const int nJ = static_cast<int>(S.cols()), nc = static_cast<int>(T.cols());
+  Mat6 K;
+  Vec6 p;
+  leaf_inertia_at_joint(d, ls.b, J, K, p);
+  const Mat6 Bh = d.Phi(ls.O, hO, ls.sO, ls.sO);
+  const DynVec taup = nJ > 0 ? DynVec(ls.sigma * tau.segment(m.v_adr[J], nJ)) : DynVec(0);
+  const Vec6 cp = ls.sigma * d.c[J];
+
+  const JointMat KT = K * T, KS = K * S;
+  const DynMat B = T.transpose() * Bh * T;
+  const DynMat Ktt = T.transpose() * KT, Kst = S.transpose() * KT, Kss = S.transpose() * KS;
+  const Eigen::PartialPivLU<DynMat> lu(DynMat(DynMat::Identity(nc, nc) + Ktt * B));
+  const DynMat E = lu.inverse();
+  DynMat G = B * E;
+  G = 0.5 * (G + G.transpose());
+  const DynMat KstH = Kst * E.transpose();
+  DynMat N = Kss - Kst * G * Kst.transpose();
+  N = 0.5 * (N + N.transpose());
+  const Eigen::LLT<DynMat> llt(N);
+  const JointMat TG = T * G;
+  // V = Sᵀ − K_st G Tᵀ (nJ × 6), Ni V, and the pieces of R, Y, F.
+  const DynMat V = DynMat(S.transpose()) - Kst * TG.transpose();
+  const DynMat NiV = nJ > 0 ? DynMat(llt.solve(V)) : DynMat(0, 6);
+  const DynMat NiKstH = nJ > 0 ? DynMat(llt.solve(KstH)) : DynMat(0, nc);
+  Mat6 R = TG * T.transpose();
+  if (nJ > 0) R.noalias() += V.transpose() * NiV;
+  R = 0.5 * (R + R.transpose());
+  const DynMat Ey = E * (Ktt - Kst.transpose() * NiKstH);
+  Mat6 Y = T * Ey * T.transpose();
+  Y = 0.5 * (Y + Y.transpose());
+  Mat6& F = d.leaf_F[d.leaf_adr[node]];
+  F = -(T * (E * T.transpose()));
+  if (nJ > 0) F.noalias() += T * (E * (Kst.transpose() * NiV));
+  // Bias (no handle forces): g0, α0, λ0, f_J0 and L's acceleration at r_J.
+  const DynVec g0 = T.transpose() * (Vec6(d.b(ls.O, ls.sO)) + cp - Bh * (S * taup));
+  DynVec alpha0(nJ);
+  if (nJ > 0) alpha0 = llt.solve(DynVec(V * p + taup - KstH * g0));
+  DynVec lam_rhs = Ktt * g0 - T.transpose() * p;
+  if (nJ > 0) lam_rhs.noalias() += Kst.transpose() * alpha0;
+  const DynVec lam0 = E * lam_rhs;
+  Vec6 fJ0 = T * lam0;
+  Vec6 aL0 = T * DynVec(g0 - B * lam0);
+  if (nJ > 0) {
+    fJ0.noalias() += S * taup;
+    aL0.noalias() += S * alpha0;
+  }
+  d.W[node] = Y;   // = T (Tᵀ Φ̂ T)⁻¹ Tᵀ: coupling and metric readers keep f_c = W(s_P − s_Q) + β
+  d.beta[node] = ls.sigma * fJ0;
+  d.taut[node].setZero();
+
+  d.leaf_side[node] = static_cast<std::uint8_t>(side);
+
+  // Φ_C and b_C: C's slots are P' then Q'.
+  const int P = t.P[node], hP = t.handle_num[P];
+  auto child_of = [&](int c, int& ch, int& s) {
+    if (c < hP - 1) {
+      ch = P;
+      s = c < t.slot_j[node] ? c : c + 1;
+    } else {
+      ch = t.Q[node];
+      const int l = c - (hP - 1);
+      s = l < t.slot_k[node] ? l : l + 1;
+    }
+  };
+  for (int c = 0; c < hC; ++c) {
+    int ch, s;
+    child_of(c, ch, s);
+    const bool lc = ch == ls.L;
+    const Vec3 ec = lc ? leaf_handle_offset(d, ls.b, J, t.handle(ls.L, s)) : Vec3::Zero();
+    const Mat6 Xc = lc ? Mat6::Zero() : Mat6(d.Phi(ls.O, hO, s, ls.sO));
+    for (int c2 = c; c2 < hC; ++c2) {
+      int ch2, s2;
+      child_of(c2, ch2, s2);
+      const bool lc2 = ch2 == ls.L;
+      const Vec3 e2 = lc2 ? leaf_handle_offset(d, ls.b, J, t.handle(ls.L, s2)) : Vec3::Zero();
+      Mat6 blk;
+      if (lc && lc2) {
+        blk = shift_cols(shift_rows(ec, R), e2);
+      } else if (!lc && !lc2) {
+        blk = d.Phi(ls.O, hO, s, s2);
+        blk.noalias() -= (Xc * Y) * d.Phi(ls.O, hO, ls.sO, s2);
+      } else if (!lc) {   // O slot c, L slot c2
+        blk = -shift_cols(Mat6(Xc * F), e2);
+      } else {            // L slot c, O slot c2
+        const Mat6 X2 = d.Phi(ls.O, hO, s2, ls.sO);
+        blk = -shift_cols(Mat6(X2 * F), ec).transpose();
+      }
+      if (c2 == c) blk = 0.5 * (blk + blk.transpose());
+      d.Phi(node, hC, c, c2) = blk;
+      if (c2 != c) d.Phi(node, hC, c2, c) = blk.transpose();
+    }
+    d.b(node, c) = lc ? shift_motion(aL0, ec) : Vec6(d.b(ls.O, s) - Xc * fJ0);
+  }
+  (void)hL;
+}
+
+// Back-substitution of a leaf-form node: f_J = F f_L + Y s_O + f_J0, then q̈ from L's joint-space
+// equation K_ss q̈' = Sᵀ(f_J + f_L + p) − Sᵀ K (a_O + c'), a_O from the (heavier) other side.
+void leaf_form_top_down(const Model& m, Data& d, int node, int side) {
+  const auto& t = m.tree;
+  const LeafSides ls = leaf_sides(m, node, side);
+  const int J = t.joint[node];
+  const int P = t.P[node], Q = t.Q[node], hP = t.handle_num[P], hO = t.handle_num[ls.O];
+  Vec6 sO = Vec6::Zero(), fL = Vec6::Zero();
+  int ci = 0;
+  for (int i = 0; i < hP; ++i) {
+    if (i == t.slot_j[node]) continue;
+    const Vec6 fi = d.f(node, ci++);
+    d.f(P, i) = fi;
+    if (P == ls.O) sO.noalias() += d.Phi(ls.O, hO, ls.sO, i) * fi;
+    else fL += shift_force(fi, -leaf_handle_offset(d, ls.b, J, t.handle(P, i)));
+  }
+  for (int l = 0; l < t.handle_num[Q]; ++l) {
+    if (l == t.slot_k[node]) continue;
+    const Vec6 fl = d.f(node, ci++);
+    d.f(Q, l) = fl;
+    if (Q == ls.O) sO.noalias() += d.Phi(ls.O, hO, ls.sO, l) * fl;
+    else fL += shift_force(fl, -leaf_handle_offset(d, ls.b, J, t.handle(Q, l)));
+  }
+  const Vec6 fJ = d.leaf_F[d.leaf_adr[node]] * fL + d.W[node] * sO + ls.sigma * d.beta[node];
+  const Vec6 fc = ls.sigma * fJ;
+  d.f(P, t.slot_j[node]) = -fc;
+  d.f(Q, t.slot_k[node]) = fc;
+  const int nJ = m.v_num[J];
+  if (nJ > 0 && d.kind[node] == NodeKind::kActive) {
+    JointMat S, T, Dj;
+    joint_subspaces(m, d, J, S, T, Dj);
+    Mat6 K;
+    Vec6 p;
+    leaf_inertia_at_joint(d, ls.b, J, K, p);
+    const Vec6 aO = sO + d.b(ls.O, ls.sO) - d.Phi(ls.O, hO, ls.sO, ls.sO) * fJ;
+    const JointMat KS = K * S;
+    const JointSq Kss = S.transpose() * KS;
+    const JointVec rhs = S.transpose() * (fJ + fL + p) - KS.transpose() * (aO + ls.sigma * d.c[J]);
+    d.qdd.segment(m.v_adr[J], nJ) = ls.sigma * Eigen::LLT<JointSq>(Kss).solve(rhs);
+  }
+}
+
+}  // namespace
+
 void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
   const auto& t = m.tree;
   d.cluster_live[node] = 0;
+  if (!d.leaf_side.empty()) d.leaf_side[node] = 0;
+  if (const int side = leaf_form_side(m, d, node)) {
+    leaf_form_assemble(m, d, node, side, tau);
+    return;
+  }
   double X[36];
   const int nc = assemble_joint(m, d, node, tau, X);
   const int P = t.P[node], Q = t.Q[node];
@@ -431,8 +657,6 @@ namespace {
 // across a long weld has a condition number ~ (length/radius of gyration)⁴, and its inverse lost
 // 1e-5 of q̈ at 10⁶ m (issue 14). Mobilities are shifted instead (no cancellation).
 
-using JointVec = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, 6, 1>;
-using JointSq = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6>;
 
 // r_a − r_b for two bodies of one cluster, from the compensated offsets (exact to O(ε|r_a − r_b|)).
 inline Vec3 body_offset(const Data& d, int a, int b) {
@@ -697,6 +921,10 @@ void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
   const auto& t = m.tree;
   if (d.cluster_live[node]) {
     top_down_inertia_form(m, d, node);
+    return;
+  }
+  if (!d.leaf_side.empty() && d.leaf_side[node]) {
+    leaf_form_top_down(m, d, node, d.leaf_side[node]);
     return;
   }
   const int P = t.P[node], Q = t.Q[node], J = t.joint[node];

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 
 #include "tests/stress/stress_scenes.hpp"
 
@@ -28,6 +29,30 @@ TEST(NearSingular, MassRatiosBetweenNeighbours) {
     // also was: generic x86-64 (no FMA) measured 6.8e-8 at r = 1e6, 19·n·ε·ρ, native 1.4e-8.
     const double growth = std::max(r, 1 / r);
     EXPECT_LE(err, growth * testing::qdd_error_bound(orc, st, testing::kBoundC)) << "ratio " << r;
+  }
+}
+
+// Light bodies (issue 14.2): every third link of a 32-link chain has its smallest principal
+// inertia / r and its mass / √r, r = 1 … 1e4 (the Cα–H case is r ≈ 1e3). κ(H) barely moves with r
+// (7e5 … 8e5, from the chain's length), so the backward-error bound B = c·n·ε·κ(H)·cancel
+// (tests/support/oracle.hpp) is ≈ 5e-8 for every r and the issue's protein-grade target 1e-12 is
+// the binding tolerance: min(1e-12, B). The mobility-form join of a light leaf cancelled, error
+// ∝ r² (1.6e-12 at r = 1e2, 1.7e-10 at 1e3, 8.7e-9 at 1e4: this test failed); the light-leaf form
+// measures 2e-14 … 4e-14 up to r = 1e3 and 2.3e-13 at 1e4 (the back-substitution still forms a
+// light body's q̈ from its heavy neighbours' handle forces).
+TEST(NearSingular, LightBodiesBetweenNormalLinks) {
+  for (double r : {1.0, 1e1, 1e2, 1e3, 1e4}) {
+    auto m = light_body_chain(32, r);
+    const State st = clean_state(*m, 3);
+    const auto fd = dca(*m, st);
+    ASSERT_TRUE(all_finite(fd.qdd)) << r;
+    EXPECT_EQ(fd.singular_pivots, 0) << r;
+    const auto orc = testing::oracle_forward_dynamics(*m, st);
+    const double err = testing::rel_err(fd.qdd, orc.qdd);
+    const double kappa = testing::mass_matrix_condition(orc);
+    const double tol = std::min(1e-12, testing::qdd_error_bound(orc, st, testing::kBoundC));
+    std::printf("[light r=%g] err %.3e, kappa(H) %.3e, tol %.3e\n", r, err, kappa, tol);
+    EXPECT_LE(err, tol) << "light-body ratio " << r;
   }
 }
 

@@ -49,6 +49,27 @@ inline std::shared_ptr<const Model> mass_ratio_chain(int n, double ratio, unsign
   return b.build();
 }
 
+// Light bodies next to heavy ones (the Cα–H body of a torsion-angle protein: smallest principal
+// inertia ~1000× below its neighbours'): a chain of n revolute links (0.3 m, random axes, seed 17)
+// whose every third link has its mass divided by √r and its smallest principal moment (about the
+// link's own axis) by r.
+inline std::shared_ptr<const Model> light_body_chain(int n, double r) {
+  ModelBuilder b;
+  std::mt19937 rng(17);
+  int prev = 0;
+  for (int i = 1; i <= n; ++i) {
+    const bool light = i % 3 == 0;
+    const double m = light ? 1.0 / std::sqrt(r) : 1.0, L = 0.3, w = 0.04;
+    Vec3 mom(2 * w * w, L * L + w * w, L * L + w * w);
+    mom *= m / 12;
+    if (light) mom.x() /= std::sqrt(r);   // with m / √r: the smallest moment is / r
+    prev = b.add_body("l" + std::to_string(i), prev, JointType::kRevolute,
+                      prev == 0 ? Vec3::Zero() : Vec3(L, 0, 0), Mat3::Identity(), random_unit(rng), m,
+                      Vec3(L / 2, 0.01, 0), Mat3(mom.asDiagonal()));
+  }
+  return b.build();
+}
+
 // Chain with aligned (coaxial) joint axes: every odd joint turns about the link's own x axis, the
 // next one about the same line (joint offset along x), then a y joint, and so on. The body between
 // two coaxial joints is a thin rod along that line whose axial inertia is `axial` × the normal

@@ -1,0 +1,49 @@
+// Protein-grade accuracy (issue 14.2): full DCA on the bacteriorhodopsin torsion model against the
+// long-double oracle, at the peer benchmark's state (crystal torsions, rates U(−1, 1) rad/ps) with
+// the ff14SB force field applied as external body forces.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <random>
+
+#include "haptree/dca.hpp"
+#include "haptree/molecule/scene.hpp"
+#include "tests/support/oracle.hpp"
+
+namespace haptree {
+namespace {
+
+TEST(ProteinAccuracy, BacteriorhodopsinDcaMatchesOracle) {
+  mol::MolecularScene sc = mol::load_molecular_scene("bacteriorhodopsin");
+  const Model& m = *sc.model;
+  State st(m);
+  std::mt19937 rng(1);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (int i = 0; i < m.nv; ++i) st.qd(i) = u(rng);
+  Data d(m);
+  forward_kinematics(m, d, st.q);
+  sc.compute(d, st.f_ext);
+  forward_dynamics(m, d, st);
+  EXPECT_EQ(d.diag.singular_pivots, 0);
+  const auto orc = testing::oracle_forward_dynamics(m, st);
+  const double err = testing::rel_err(d.qdd, orc.qdd);
+  // Tolerance from the error analysis: B = c·n·ε·κ(H)·cancel, the normwise backward-error bound
+  // (tests/support/oracle.hpp; printed below), is far above 1e-12 for a 786-DOF protein. A
+  // recursion without element growth has error ≈ c·n·ε (10·786·2.2e-16 = 1.7e-12). The
+  // mobility-form join of the light Cα–H leaves had growth ~ r² (r ≈ 10³) and measured 4.8e-10;
+  // the light-leaf form measures 8.4e-13 at this state (2.7e-12 = 1.6·c·n·ε at bench_peers' state, τ
+  // from the force field; the rest: light bodies whose joint meets
+  // another light side, still in mobility form). tol = 6·c·n·ε = 1.0e-11 leaves 4× for other
+  // CPUs' operation orders. The issue's 1e-12 target is not reached yet (Bullet, Simbody: 8e-14).
+  const double c_n_eps = testing::kBoundC * m.nv * std::numeric_limits<double>::epsilon();
+  const double tol = std::min(6 * c_n_eps, testing::qdd_error_bound(orc, st, testing::kBoundC));
+  std::printf("[bR] err %.3e, kappa(H) %.3e, bound B %.3e, tol %.3e\n", err,
+              testing::mass_matrix_condition(orc), testing::qdd_error_bound(orc, st, testing::kBoundC),
+              tol);
+  EXPECT_LE(err, tol);
+}
+
+}  // namespace
+}  // namespace haptree
