@@ -56,9 +56,9 @@ def run(exe, seconds, mode):
             f1, t1 = int(page.eval("document.body.dataset.frames")), time.time()
             fps = (f1 - f0) / (t1 - t0)
             page_ms = {k: page.eval(f"document.body.dataset.{k} || ''") for k in
-                       ("msFrame", "msPos", "msOverlay", "msCartoon", "cartoonUpdates", "direct", "directWhy", "error")}
+                       ("msFrame", "msPos", "msPosMedian", "msOverlay", "msCartoon", "cartoonUpdates", "direct", "directWhy", "error")}
             page_ms["fps"] = f"{fps:.1f}"
-            page_ms["raster"] = page.eval("window.haptreeRasterMs ? JSON.stringify(haptreeRasterMs(10)) : ''")
+            page_ms["raster"] = page.eval("window.haptreeRasterMs ? JSON.stringify(haptreeRasterMs(4)) : ''")
             print("page:", page_ms, flush=True)
             rest = p.communicate()[0]
         finally:

@@ -16,6 +16,7 @@ let frame = null, pendingPositions = null, framesRendered = 0;
 let activeOfPoint = null, maskDirty = false, lastMaskUpdate = 0;
 let grab = null;
 let tPos = 0, tOv = 0, tFrame = 0;
+const recent = [];
 // Per frame the page moves the ball-and-stick buffers itself (direct: sphere centres and bond ends copied
 // from the frame through index maps, no NGL proxies); the cartoon (a spline through the backbone, the
 // costly rebuild) follows at a lower rate: at most once per CARTOON_MIN_MS, and never more than ~10 % of
@@ -195,11 +196,11 @@ function gather(out, idx, pos) {
   }
 }
 function movePositions(pos, now) {
-  comp.structure.updatePosition(pos, false);   // the atoms themselves: picking, the grab, the cartoon
-  if (direct === null && ballRepr) {
+  if (direct === null && ballRepr) {   // before the atoms move: the buffers must still match them
     const why = makeDirect();
     if (why) { direct = false; body.dataset.directWhy = why; }   // null: NGL still building, try again
   }
+  comp.structure.updatePosition(pos, false);   // the atoms themselves: picking, the grab, the cartoon
   if (direct) {
     gather(direct.sp, direct.ai, pos);
     gather(direct.p1, direct.i1, pos);
@@ -258,6 +259,9 @@ function render(now) {
   }
   const t3 = performance.now();
   tPos += t1 - now0; tOv += t2 - t1; tFrame += t3 - now0;
+  recent.push(t1 - now0);   // steady state: the median of the last 64 frames (the mean keeps the start-up)
+  if (recent.length > 64) recent.shift();
+  body.dataset.msPosMedian = [...recent].sort((a, b) => a - b)[recent.length >> 1].toFixed(2);
   body.dataset.msPos = (tPos / framesRendered).toFixed(2);
   body.dataset.msOverlay = (tOv / framesRendered).toFixed(2);
   body.dataset.msFrame = (tFrame / framesRendered).toFixed(2);
