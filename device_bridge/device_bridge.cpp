@@ -21,7 +21,8 @@ static const Clock::time_point kEpoch = Clock::now();
 static double now_s() { return std::chrono::duration<double>(Clock::now() - kEpoch).count(); }
 
 DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
-    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()), coupler_lock_(options.feedback_timeout_s) {
+    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()), feedback_gain_(WatchdogParams{options.feedback_timeout_s, 0.0, options.feedback_ramp_up_s}),
+      coupler_lock_(options.feedback_timeout_s) {
   auto pos = [](double v) { return std::isfinite(v) && v > 0; };
   if (!pos(opt_.rate_hz)) throw std::invalid_argument("device_bridge: --rate-hz must be a positive rate");
   if (!pos(opt_.max_force_n)) throw std::invalid_argument("device_bridge: --max-force-n must be positive and finite");
@@ -65,10 +66,13 @@ DeviceBridge::~DeviceBridge() { device_->close(); }
 // One writer per device FEEDBACK channel: follow one coupler instance; another is taken only after the
 // followed one was silent for feedback_timeout_s (by then the device renders zero anyway): a restart.
 bool DeviceBridge::from_followed_coupler(const lcmt_feedback& m, double t) {
-  const bus::Origin o = coupler_lock_.check(m.instance_id, t);
+  const bus::Origin o = coupler_lock_.check(m.instance_id, t, bus::message_age_s(m.utime));
   if (!bus::accepted(o)) {
     refused_.fetch_add(1, std::memory_order_relaxed);
-    if (o != bus::Origin::kPrevious) refused_id_.store(m.instance_id, std::memory_order_relaxed);
+    if (o == bus::Origin::kTooOld)
+      too_old_.fetch_add(1, std::memory_order_relaxed);
+    else if (o != bus::Origin::kPrevious)
+      refused_id_.store(m.instance_id, std::memory_order_relaxed);
     return false;
   }
   if (o == bus::Origin::kTakeover) takeovers_.fetch_add(1, std::memory_order_relaxed);
@@ -92,6 +96,12 @@ void DeviceBridge::report_problems() {
                  "instance {:016x}, which is live. Two couplers are driving device {}; stop one of them.",
                  opt_.device, static_cast<uint64_t>(refused_id_.load()), static_cast<uint64_t>(followed_id_.load()),
                  opt_.device);
+  }
+  if (!warned_too_old_ && too_old_.load() > 0) {
+    warned_too_old_ = true;
+    spdlog::warn("device_bridge {}: refused {} FEEDBACK message(s) of a new coupler instance stamped more than {} s "
+                 "away from this host's clock: a replayed recording, or hosts whose clocks differ (synchronise them)",
+                 opt_.device, too_old_.load(), bus::OriginLock::kDefaultMaxStartAgeS);
   }
   if (takeovers_.load() != reported_takeovers_) {
     reported_takeovers_ = takeovers_.load();
@@ -146,7 +156,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
       }
       readings_.fetch_add(1, std::memory_order_relaxed);
     }
-    // apply the latest feedback (zero when it is older than the timeout)
+    // apply the latest feedback: zero when it is older than the timeout, and after such a gap ramped back in
     Vec3 f = Vec3::Zero();
     if (shm_feedback_) {
       poll_shm_feedback();
@@ -154,8 +164,10 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     } else if (fb_box_.update()) {
       fb_ = fb_box_.front();
     }
-    if (now_s() - feedback_time_s_.load(std::memory_order_acquire) <= opt_.feedback_timeout_s)
-      f = clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
+    const double t_apply = now_s();
+    const double gain = feedback_gain_.update(t_apply, t_apply - feedback_time_s_.load(std::memory_order_acquire));
+    if (gain > 0)
+      f = gain * clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
     device_->write_force(f);
     last_force_n_.store(f.norm(), std::memory_order_relaxed);
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());

@@ -14,6 +14,7 @@
 #include "haptree/bus/latency_histogram.hpp"
 #include "haptree/bus/latest_value.hpp"
 #include "haptree/bus/origin.hpp"
+#include "haptree/safety.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "haptree/device/device.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -29,6 +30,8 @@ struct DeviceBridgeOptions {
   double max_force_n = 3.0;
   double feedback_timeout_s = 0.01;              // no feedback for this long -> render zero; also the silence
                                                  // after which another coupler instance may take over
+  double feedback_ramp_up_s = 0.1;               // after such a gap the force comes back over this time, not as
+                                                 // a step (chaos_soak: 3 N steps when a loaded coupler stalled)
   bool shm = false;
   double mirror_rate_hz = 100;
   bool busy_poll = false;                        // poll shm feedback between ticks (latency benchmark)
@@ -59,10 +62,11 @@ class DeviceBridge {
   void poll_shm_feedback();
   void report_problems();
   int64_t instance_id_;
+  Watchdog feedback_gain_;         // 0 after a feedback gap, back to 1 over feedback_ramp_up_s (loop thread)
   bus::OriginLock coupler_lock_;   // used by the thread that receives feedback (handler for LCM, loop for shm)
-  std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0};
+  std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0}, too_old_{0};
   int64_t reported_takeovers_ = 0;
-  bool warned_refused_ = false;
+  bool warned_refused_ = false, warned_too_old_ = false;
   bus::Bus& bus_;
   DeviceBridgeOptions opt_;
   std::unique_ptr<device::Device> device_;
