@@ -145,6 +145,16 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
       pose_box_.write(m);
       pose_recv_s_.store(t, std::memory_order_release);
     });
+    // One writer per device FEEDBACK channel over LCM too (shm: the segment check in publish_stats): a FEEDBACK
+    // of another live instance is a second coupler on this device. Peeked from the header, not decoded (our
+    // own come back at the loop rate); an old stamp is a replay, not a writer.
+    bus_.subscribe_raw(ch_feedback_, [this](const void* d, uint32_t n, const std::string&) {
+      int64_t utime = 0, inst = 0;
+      if (!bus::peek_origin<lcmt_feedback>(d, n, &utime, &inst) || inst == instance_id_ || inst == 0) return;
+      if (!(std::fabs(bus::message_age_s(utime)) <= bus::OriginLock::kDefaultMaxStartAgeS)) return;
+      c_.other_feedback_writer.fetch_add(1, std::memory_order_relaxed);
+      refused_writer_.store(inst, std::memory_order_relaxed);
+    });
   }
   bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_);
   ch_settings_ = bus::channel::coupler_settings(opt_.user, opt_.channel_suffix);
@@ -166,10 +176,11 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
 // after the old went silent for stale_after_s: a device restart), newest seq only, and sane values. A
 // refused pose is not taken: its age grows and the watchdog takes the force away. No logging here.
 bool Coupler::take_pose(const lcmt_device_state& m, double now_s) {
-  const bus::Origin o = device_lock_.check(m.instance_id, now_s);
+  const bus::Origin o = device_lock_.check(m.instance_id, now_s, bus::message_age_s(m.utime));
   if (!bus::accepted(o)) {
     c_.pose_rejected.fetch_add(1, std::memory_order_relaxed);
     if (o == bus::Origin::kRefused || o == bus::Origin::kInvalid) refused_device_.fetch_add(1, std::memory_order_relaxed);
+    if (o == bus::Origin::kTooOld) old_device_.fetch_add(1, std::memory_order_relaxed);
     return false;
   }
   if (o == bus::Origin::kTakeover) {
@@ -202,6 +213,12 @@ void Coupler::report_problems() {
                  "this coupler follows ({:016x}) while it is live: two device_bridges on --device {}, or a stray "
                  "publisher. They cannot press or release the grab.",
                  opt_.user, refused_device_.load(), static_cast<uint64_t>(followed_device_.load()), opt_.device);
+  }
+  if (!warned_old_device_ && old_device_.load() > 0) {
+    warned_old_device_ = true;
+    spdlog::warn("coupler {}: refused {} DEVICE_STATE message(s) of a new device instance stamped more than {} s away "
+                 "from this host's clock: a replayed recording, or hosts whose clocks differ (synchronise them)",
+                 opt_.user, old_device_.load(), bus::OriginLock::kDefaultMaxStartAgeS);
   }
   if (!warned_bad_pose_ && bad_pose_value_.load()) {
     warned_bad_pose_ = true;
@@ -271,9 +288,19 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   // One server instance at a time: a new one only after the old stream went silent for stale_after_s (by
   // then the watchdog has taken the force away): that is a restart, whatever the versions. Older versions
   // of the same instance are reordered or duplicated datagrams: ignored, counted, no log.
-  const bus::Origin o = server_lock_.check(snap_msg_.instance_id, now);
+  const bus::Origin o = server_lock_.check(snap_msg_.instance_id, now, bus::message_age_s(snap_msg_.utime));
   if (o == bus::Origin::kPrevious) {
     c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  if (o == bus::Origin::kTooOld) {   // a replay: it must not pass for a restarted server (chaos_soak)
+    c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
+    if (!warned_old_snapshot_)
+      spdlog::warn("coupler {}: refusing snapshots of server instance {:016x} stamped {:.3f} s away from this host's "
+                   "clock: a replayed recording, or hosts whose clocks differ by more than {} s (synchronise them)",
+                   opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), bus::message_age_s(snap_msg_.utime),
+                   bus::OriginLock::kDefaultMaxStartAgeS);
+    warned_old_snapshot_ = true;
     return;
   }
   if (!bus::accepted(o)) {
@@ -309,6 +336,7 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   }
   CouplingSnapshot& back = snap_box_.back();
   bus::from_lcmt(snap_msg_, back);
+  back.source_instance = snap_msg_.instance_id;
   if (back.grabs.size() != 1 || validate_coupling_snapshot(back) != CouplingStatus::kOk || !ws_.fits(back)) {
     c_.bad_rejected.fetch_add(1, std::memory_order_relaxed);
     return;
@@ -376,7 +404,7 @@ bool Coupler::iterate(double now) {
   Vec3 force_n = Vec3::Zero();
   f_u_.setZero();
   f_feed_.setZero();
-  int64_t version = -1;
+  int64_t version = -1, snapshot_instance = 0;
   double age = pose_time_s_ >= 0 ? now - pose_time_s_ : 1e9;
   if (grabbing_) {
     // The snapshot's age counts once coefficients for this grab are in use. Before the first one arrives
@@ -391,6 +419,7 @@ bool Coupler::iterate(double now) {
         force_n.setZero();
       if (clamped) c_.user_force_clamps.fetch_add(1, std::memory_order_relaxed);
       version = snap.version;
+      snapshot_instance = snap.source_instance;
     }
   }
   const GuardedForce g = safety_.apply(now, age, force_n, Vec3::Zero());
@@ -401,6 +430,8 @@ bool Coupler::iterate(double now) {
   device::FeedbackCommand cmd;
   cmd.echo_device_seq = pose_.seq;
   cmd.snapshot_version = version;
+  cmd.snapshot_instance = snapshot_instance;
+  cmd.echo_device_instance = pose_.instance_id;
   cmd.force_n = g.force;
   cmd.flags = g.flags;
   device::to_lcmt(cmd, opt_.device, ++feedback_seq_, bus::now_utime(), fb_);

@@ -58,7 +58,7 @@ struct CouplerCounters {
   std::atomic<int64_t> implausible_rejected{0};   // version jumps beyond what the elapsed time allows
   std::atomic<int64_t> pose_rejected{0};          // DEVICE_STATE from another device instance, or absurd/non-finite
   std::atomic<int64_t> device_restarts{0};        // a new device_bridge instance after the old went silent
-  std::atomic<int64_t> other_feedback_writer{0};  // times another instance's FEEDBACK was seen on our device's segment
+  std::atomic<int64_t> other_feedback_writer{0};  // another instance's FEEDBACK seen on our device's channel (shm: segment, 1/s)
   std::atomic<int64_t> user_force_clamps{0};      // f_u clamped to the scene-side limit
   std::atomic<int64_t> grab_feedbacks{0};         // feedback messages sent while grabbing
   std::atomic<int64_t> grab_watchdog_zeros{0};    // ... of which exactly zero because of the watchdog
@@ -99,7 +99,7 @@ class Coupler {
   double newest_accept_s_ = -1;        // handler-side: when newest_version_ was accepted
   bus::OriginLock server_lock_;        // handler-side: one live server instance
   std::atomic<uint64_t> locked_fingerprint_{0};
-  bool warned_foreign_ = false, warned_duplicate_ = false, warned_implausible_ = false;
+  bool warned_foreign_ = false, warned_duplicate_ = false, warned_implausible_ = false, warned_old_snapshot_ = false;
   std::atomic<double> snapshot_recv_s_{-1};   // arrival time (loop clock) of the newest accepted snapshot
   // device pose
   bus::LatestValue<lcmt_device_state> pose_box_;
@@ -109,9 +109,10 @@ class Coupler {
   std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
   bus::OriginLock device_lock_;        // pose thread (handler for LCM, loop for shm): one device instance
   int64_t newest_pose_seq_ = -1;
-  std::atomic<int64_t> refused_device_{0}, refused_writer_{0}, followed_device_{0};
+  std::atomic<int64_t> refused_device_{0}, refused_writer_{0}, followed_device_{0}, old_device_{0};
   std::atomic<bool> bad_pose_value_{false};
-  bool warned_device_ = false, warned_bad_pose_ = false, warned_writer_ = false, warned_clamp_ = false;
+  bool warned_device_ = false, warned_bad_pose_ = false, warned_writer_ = false, warned_clamp_ = false,
+       warned_old_device_ = false;
   int64_t reported_device_restarts_ = 0;  lcmt_device_state pose_{}, shm_pose_msg_{};
   lcmt_feedback fb_check_{};
   int64_t stats_seq_ = 0;

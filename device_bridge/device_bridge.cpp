@@ -22,7 +22,8 @@ static const Clock::time_point kEpoch = Clock::now();
 static double now_s() { return std::chrono::duration<double>(Clock::now() - kEpoch).count(); }
 
 DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
-    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()), coupler_lock_(options.feedback_timeout_s) {
+    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()),
+      coupler_lock_(options.feedback_timeout_s) {
   auto pos = [](double v) { return std::isfinite(v) && v > 0; };
   if (!pos(opt_.rate_hz)) throw std::invalid_argument("device_bridge: --rate-hz must be a positive rate");
   if (!pos(opt_.max_force_n)) throw std::invalid_argument("device_bridge: --max-force-n must be positive and finite");
@@ -73,10 +74,13 @@ DeviceBridge::~DeviceBridge() { device_->close(); }
 // One writer per device FEEDBACK channel: follow one coupler instance; another is taken only after the
 // followed one was silent for feedback_timeout_s (by then the device renders zero anyway): a restart.
 bool DeviceBridge::from_followed_coupler(const lcmt_feedback& m, double t) {
-  const bus::Origin o = coupler_lock_.check(m.instance_id, t);
+  const bus::Origin o = coupler_lock_.check(m.instance_id, t, bus::message_age_s(m.utime));
   if (!bus::accepted(o)) {
     refused_.fetch_add(1, std::memory_order_relaxed);
-    if (o != bus::Origin::kPrevious) refused_id_.store(m.instance_id, std::memory_order_relaxed);
+    if (o == bus::Origin::kTooOld)
+      too_old_.fetch_add(1, std::memory_order_relaxed);
+    else if (o != bus::Origin::kPrevious)
+      refused_id_.store(m.instance_id, std::memory_order_relaxed);
     return false;
   }
   if (o == bus::Origin::kTakeover) takeovers_.fetch_add(1, std::memory_order_relaxed);
@@ -100,6 +104,12 @@ void DeviceBridge::report_problems() {
                  "instance {:016x}, which is live. Two couplers are driving device {}; stop one of them.",
                  opt_.device, static_cast<uint64_t>(refused_id_.load()), static_cast<uint64_t>(followed_id_.load()),
                  opt_.device);
+  }
+  if (!warned_too_old_ && too_old_.load() > 0) {
+    warned_too_old_ = true;
+    spdlog::warn("device_bridge {}: refused {} FEEDBACK message(s) of a new coupler instance stamped more than {} s "
+                 "away from this host's clock: a replayed recording, or hosts whose clocks differ (synchronise them)",
+                 opt_.device, too_old_.load(), bus::OriginLock::kDefaultMaxStartAgeS);
   }
   if (takeovers_.load() != reported_takeovers_) {
     reported_takeovers_ = takeovers_.load();

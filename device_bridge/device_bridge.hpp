@@ -14,6 +14,7 @@
 #include "haptree/bus/latency_histogram.hpp"
 #include "haptree/bus/latest_value.hpp"
 #include "haptree/bus/origin.hpp"
+#include "haptree/safety.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "haptree/device/device.hpp"
 #include "haptree/lcmt_device_state.hpp"
@@ -67,9 +68,9 @@ class DeviceBridge {
   void report_problems();
   int64_t instance_id_;
   bus::OriginLock coupler_lock_;   // used by the thread that receives feedback (handler for LCM, loop for shm)
-  std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0};
+  std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0}, too_old_{0};
   int64_t reported_takeovers_ = 0;
-  bool warned_refused_ = false;
+  bool warned_refused_ = false, warned_too_old_ = false;
   bus::Bus& bus_;
   DeviceBridgeOptions opt_;
   std::unique_ptr<device::Device> device_;

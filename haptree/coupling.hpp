@@ -56,6 +56,7 @@ struct Grab {
 struct CouplingSnapshot {
   std::uint64_t model_fingerprint = 0;
   std::int64_t version = -1;        // server step counter
+  std::int64_t source_instance = 0; // instance_id of the message it came from (set by its receiver; 0 in-process)
   double sim_time = 0;
   std::vector<Grab> grabs;
   std::vector<std::int32_t> ints;

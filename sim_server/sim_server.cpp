@@ -42,7 +42,7 @@ struct SimServer::UserSlot {
   // handler thread: which coupler this user's forces come from, and its newest seq
   bus::OriginLock origin;
   int64_t newest_seq = 0;
-  std::atomic<bool> warned_foreign{false};
+  std::atomic<bool> warned_foreign{false}, warned_old{false};
   // stepping thread: arrival time of the newest message, its force after the sanity checks, watchdog
   double last_in_s = -1;
   double max_gap_s = 0;
@@ -124,10 +124,15 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
     // Handler thread: one coupler per user (a second live one is refused), reordered messages dropped.
     bus_.subscribe<lcmt_user_force>(
         bus::channel::user_force(u, opt_.channel_suffix), [this, slot = slot.get()](const lcmt_user_force& m, const std::string&) {
-          const bus::Origin o = slot->origin.check(m.instance_id, since_epoch());
+          const bus::Origin o = slot->origin.check(m.instance_id, since_epoch(), bus::message_age_s(m.utime));
           if (!bus::accepted(o)) {
             c_.foreign_rejected.fetch_add(1, std::memory_order_relaxed);
-            if (o != bus::Origin::kPrevious && !slot->warned_foreign.exchange(true))
+            if (o == bus::Origin::kTooOld && !slot->warned_old.exchange(true))
+              spdlog::warn("sim_server: refusing USER_FORCE for user {} from a new coupler instance {:016x} stamped "
+                           "{:.3f} s away from this host's clock: a replayed recording, or hosts whose clocks differ "
+                           "by more than {} s (synchronise them)", slot->user, static_cast<uint64_t>(m.instance_id),
+                           bus::message_age_s(m.utime), bus::OriginLock::kDefaultMaxStartAgeS);
+            if (o != bus::Origin::kPrevious && o != bus::Origin::kTooOld && !slot->warned_foreign.exchange(true))
               spdlog::warn("sim_server: refusing USER_FORCE for user {} from coupler instance {:016x}: coupler "
                            "instance {:016x} is live on that channel. Run one coupler per user (--user).",
                            slot->user, static_cast<uint64_t>(m.instance_id), static_cast<uint64_t>(slot->origin.locked()));

@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <string>
 #include <cstdio>
+#include <deque>
 #include <map>
 #include <memory>
 #include <vector>
@@ -68,64 +69,54 @@ int main(int argc, char** argv) {
   }
   const bool device_given = app.count("--device") > 0;
   namespace ch = haptree::bus::channel;
-  lcm::LogFile file(log, "r");
-  if (!file.good()) {
+  const std::string c_settings = ch::coupler_settings(o.user, suffix), c_snap = ch::coeffs(o.user, suffix);
+  int64_t in_window = 0, undecodable = 0;
+  // Calls fn(channel, data, len) for each authentic event of the window, in log order. false: no log.
+  bool empty_log = false;
+  auto for_each_event = [&](auto&& fn) {
+    lcm::LogFile file(log, "r");
+    if (!file.good()) return false;
+    const lcm::LogEvent* ev = file.readNextEvent();
+    if (ev == nullptr) {
+      empty_log = true;
+      return true;
+    }
+    const int64_t t0 = ev->timestamp;
+    const int64_t t_begin = t0 + static_cast<int64_t>(std::llround(start_s * 1e6));
+    const int64_t t_end = end_s < 0 ? INT64_MAX : t0 + static_cast<int64_t>(std::llround(end_s * 1e6));
+    if (start_s > 0) {
+      file.seekToTimestamp(t_begin);   // lands near t_begin (before or after): the filter below is exact
+      ev = file.readNextEvent();
+    }
+    in_window = unauthentic = 0;
+    for (; ev != nullptr; ev = file.readNextEvent()) {
+      if (ev->timestamp < t_begin) continue;
+      if (ev->timestamp >= t_end) break;
+      ++in_window;
+      size_t len = static_cast<size_t>(ev->datalen);   // keyed log: the payload before the trailer
+      if (auth && auth->verify(ev->channel, ev->data, len, &len) != haptree::bus::AuthVerdict::kOk) {
+        ++unauthentic;
+        continue;
+      }
+      fn(ev->channel, ev->data, len);
+    }
+    return true;
+  };
+  // Pass 1: the coupler's settings (they name the device, and a logger that started late has FEEDBACK
+  // before the first of them).
+  std::vector<haptree::lcmt_coupler_settings> settings;
+  const bool opened = for_each_event([&](const std::string& channel, const void* data, size_t len) {
+    if (channel != c_settings) return;
+    haptree::lcmt_coupler_settings m;
+    if (haptree::bus::decode_checked(data, len, m) == haptree::bus::DecodeResult::kOk) settings.push_back(m);
+  });
+  if (!opened) {
     spdlog::critical("cannot open log '{}'", log);
     return 2;
   }
-  const std::string c_settings = ch::coupler_settings(o.user, suffix), c_snap = ch::coeffs(o.user, suffix);
-  const lcm::LogEvent* ev = file.readNextEvent();
-  if (ev == nullptr) {
+  if (empty_log) {
     std::printf("replay_coupling: '%s' holds no events\n", log.c_str());
     return 1;
-  }
-  const int64_t t0 = ev->timestamp;
-  const int64_t t_begin = t0 + static_cast<int64_t>(std::llround(start_s * 1e6));
-  const int64_t t_end = end_s < 0 ? INT64_MAX : t0 + static_cast<int64_t>(std::llround(end_s * 1e6));
-  if (start_s > 0) {
-    file.seekToTimestamp(t_begin);   // lands near t_begin (before or after): the filter below is exact
-    ev = file.readNextEvent();
-  }
-  int64_t in_window = 0;
-  std::map<int64_t, haptree::CouplingSnapshot> snaps;
-  std::map<int64_t, haptree::lcmt_device_state> states;
-  std::vector<haptree::lcmt_coupler_settings> settings;
-  std::vector<std::pair<haptree::lcmt_feedback, int>> feedback;   // with the index of the settings in force
-  struct DeviceEvent {   // device channels, decoded once the device id is known (from the settings)
-    std::string channel;
-    std::vector<uint8_t> bytes;
-    int settings_index;     // newest settings message before it (-1: none yet)
-  };
-  std::vector<DeviceEvent> device_events;
-  int64_t undecodable = 0;
-  for (; ev != nullptr; ev = file.readNextEvent()) {
-    if (ev->timestamp < t_begin) continue;
-    if (ev->timestamp >= t_end) break;
-    ++in_window;
-    size_t len = static_cast<size_t>(ev->datalen);   // keyed log: the payload before the trailer
-    if (auth && auth->verify(ev->channel, ev->data, len, &len) != haptree::bus::AuthVerdict::kOk) {
-      ++unauthentic;
-      continue;
-    }
-    if (ev->channel == c_snap) {
-      haptree::lcmt_coupling_snapshot m;
-      if (haptree::bus::decode_checked(ev->data, len, m) != haptree::bus::DecodeResult::kOk) {
-        ++undecodable;
-        continue;
-      }
-      haptree::CouplingSnapshot s;
-      haptree::bus::from_lcmt(m, s);
-      snaps[s.version] = std::move(s);   // a restarted server reuses versions: the newest wins
-    } else if (ev->channel == c_settings) {
-      haptree::lcmt_coupler_settings m;
-      if (haptree::bus::decode_checked(ev->data, len, m) == haptree::bus::DecodeResult::kOk)
-        settings.push_back(m);
-      else
-        ++undecodable;
-    } else if (ev->channel.rfind("HAPTREE_DEVICE_STATE_", 0) == 0 || ev->channel.rfind("HAPTREE_FEEDBACK_", 0) == 0) {
-      const auto* b = static_cast<const uint8_t*>(ev->data);
-      device_events.push_back({ev->channel, std::vector<uint8_t>(b, b + len), static_cast<int>(settings.size()) - 1});
-    }
   }
   if (!settings.empty()) {
     const auto& first = settings.front();
@@ -138,21 +129,6 @@ int main(int argc, char** argv) {
     std::printf("replay_coupling: no %s messages in the log: using the options given\n", c_settings.c_str());
   }
   const std::string c_state = ch::device_state(o.device, suffix), c_fb = ch::feedback(o.device, suffix);
-  for (const auto& [channel, bytes, settings_index] : device_events) {
-    if (channel == c_state) {
-      haptree::lcmt_device_state m;
-      if (haptree::bus::decode_checked(bytes.data(), bytes.size(), m) == haptree::bus::DecodeResult::kOk)
-        states[m.seq] = m;
-      else
-        ++undecodable;
-    } else if (channel == c_fb) {
-      haptree::lcmt_feedback m;
-      if (haptree::bus::decode_checked(bytes.data(), bytes.size(), m) == haptree::bus::DecodeResult::kOk)
-        feedback.emplace_back(m, settings_index);
-      else
-        ++undecodable;
-    }
-  }
   // Options for the FEEDBACK messages logged while settings[i] was the newest (a logger that started late:
   // the first settings message also stands for the FEEDBACK before it).
   const haptree::Vec3 offset_opt(offset[0], offset[1], offset[2]);
@@ -171,45 +147,103 @@ int main(int argc, char** argv) {
     if (overrides[5]->count()) r.max_force_n = o.max_force_n;
     return r;
   };
+  // Pass 2, in log order: each FEEDBACK is recomputed from the snapshot and device state it names, logged
+  // before it. They are looked up by (instance_id, version) and (instance_id, seq): a restarted server
+  // reuses versions and a restarted device seqs, and a replayed message of an earlier instance must not
+  // stand for the live one's (both found by tools/chaos_soak). FEEDBACK of schema 3 names both instances;
+  // instance 0 stands for any (the newest message with that number). Only the last kKeep of each are kept
+  // (a FEEDBACK answers inputs of the last stale_after_s, or it is a skipped watchdog ramp), so memory stays
+  // bounded on long logs.
+  constexpr size_t kKeep = 4096;
+  using Key = std::pair<int64_t, int64_t>;
+  std::map<Key, haptree::CouplingSnapshot> snaps;
+  std::map<Key, haptree::lcmt_device_state> states;
+  std::deque<std::pair<Key, int64_t>> snap_order, state_order;
+  std::map<Key, int64_t> snap_serial, state_serial;
+  int64_t serial = 0;
+  auto remember = [&serial](auto& map, std::deque<std::pair<Key, int64_t>>& order, std::map<Key, int64_t>& serials,
+                            const Key& k, const auto& value) {
+    map[k] = value;
+    serials[k] = ++serial;
+    order.emplace_back(k, serial);
+    while (order.size() > 2 * kKeep) {   // two keys per message
+      const auto [old, sn] = order.front();
+      order.pop_front();
+      auto it = serials.find(old);
+      if (it != serials.end() && it->second == sn) {   // not overwritten since
+        serials.erase(it);
+        map.erase(old);
+      }
+    }
+  };
   haptree::CouplingWorkspace ws(o.max_nodes, o.max_slots);
-  int64_t compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0;
+  int64_t feedback_count = 0, compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0;
+  int settings_seen = 0;
   double max_dev = 0;
-  for (const auto& [f, settings_index] : feedback) {
-    if (f.snapshot_version < 0) {
-      ++no_snapshot;
-      continue;
+  for_each_event([&](const std::string& channel, const void* data, size_t len) {
+    if (channel == c_settings) {
+      ++settings_seen;
+    } else if (channel == c_snap) {
+      haptree::lcmt_coupling_snapshot m;
+      if (haptree::bus::decode_checked(data, len, m) != haptree::bus::DecodeResult::kOk) {
+        ++undecodable;
+        return;
+      }
+      haptree::CouplingSnapshot s;
+      haptree::bus::from_lcmt(m, s);
+      remember(snaps, snap_order, snap_serial, Key{m.instance_id, s.version}, s);
+      remember(snaps, snap_order, snap_serial, Key{0, s.version}, s);
+    } else if (channel == c_state) {
+      haptree::lcmt_device_state m;
+      if (haptree::bus::decode_checked(data, len, m) != haptree::bus::DecodeResult::kOk) {
+        ++undecodable;
+        return;
+      }
+      remember(states, state_order, state_serial, Key{m.instance_id, m.seq}, m);
+      remember(states, state_order, state_serial, Key{0, m.seq}, m);
+    } else if (channel == c_fb) {
+      haptree::lcmt_feedback f;
+      if (haptree::bus::decode_checked(data, len, f) != haptree::bus::DecodeResult::kOk) {
+        ++undecodable;
+        return;
+      }
+      ++feedback_count;
+      if (f.snapshot_version < 0) {
+        ++no_snapshot;
+        return;
+      }
+      if (f.flags & (haptree::kSafetyWatchdog | haptree::kSafetyNonFinite)) {
+        ++skipped_watchdog;
+        return;
+      }
+      const haptree::CouplerOptions so = options_for(settings_seen - 1);
+      auto s = snaps.find({f.snapshot_instance_id, f.snapshot_version});
+      auto p = states.find({f.echo_device_instance_id, f.echo_device_seq});
+      if (s == snaps.end() || p == states.end()) {
+        ++missing;
+        return;
+      }
+      haptree::CouplingInputs in;
+      in.position_m = haptree::Vec3(p->second.position_m[0], p->second.position_m[1], p->second.position_m[2]);
+      in.velocity_mps = haptree::Vec3(p->second.linear_velocity_mps[0], p->second.linear_velocity_mps[1],
+                                      p->second.linear_velocity_mps[2]);
+      if (!ws.fits(s->second)) ws.reserve_for(s->second);
+      haptree::Vec6 f_u, f_feed;
+      haptree::Vec3 force_n;
+      if (haptree::coupler_feedback(so, s->second, in, ws, f_u, f_feed, force_n) != haptree::CouplingStatus::kOk)
+        force_n.setZero();
+      force_n = haptree::clamp_norm(haptree::finite_or_zero(force_n), so.max_force_n);
+      const haptree::Vec3 logged(f.force_n[0], f.force_n[1], f.force_n[2]);
+      max_dev = std::max(max_dev, (force_n - logged).cwiseAbs().maxCoeff());
+      ++compared;
     }
-    if (f.flags & (haptree::kSafetyWatchdog | haptree::kSafetyNonFinite)) {
-      ++skipped_watchdog;
-      continue;
-    }
-    const haptree::CouplerOptions so = options_for(settings_index);
-    auto s = snaps.find(f.snapshot_version);
-    auto p = states.find(f.echo_device_seq);
-    if (s == snaps.end() || p == states.end()) {
-      ++missing;
-      continue;
-    }
-    haptree::CouplingInputs in;
-    in.position_m = haptree::Vec3(p->second.position_m[0], p->second.position_m[1], p->second.position_m[2]);
-    in.velocity_mps = haptree::Vec3(p->second.linear_velocity_mps[0], p->second.linear_velocity_mps[1],
-                                    p->second.linear_velocity_mps[2]);
-    if (!ws.fits(s->second)) ws.reserve_for(s->second);
-    haptree::Vec6 f_u, f_feed;
-    haptree::Vec3 force_n;
-    if (haptree::coupler_feedback(so, s->second, in, ws, f_u, f_feed, force_n) != haptree::CouplingStatus::kOk)
-      force_n.setZero();
-    force_n = haptree::clamp_norm(haptree::finite_or_zero(force_n), so.max_force_n);
-    const haptree::Vec3 logged(f.force_n[0], f.force_n[1], f.force_n[2]);
-    max_dev = std::max(max_dev, (force_n - logged).cwiseAbs().maxCoeff());
-    ++compared;
-  }
+  });
   if (start_s > 0 || end_s >= 0)
     std::printf("replay_coupling: window [%g, %s) s: %lld events\n", start_s,
                 end_s < 0 ? "end" : fmt::format("{:g}", end_s).c_str(), static_cast<long long>(in_window));
-  std::printf("replay_coupling: %zu feedback messages, %lld compared, max deviation %.3e N "
+  std::printf("replay_coupling: %lld feedback messages, %lld compared, max deviation %.3e N "
               "(skipped: %lld watchdog ramp, %lld without snapshot, %lld missing snapshot/pose; %lld undecodable)\n",
-              feedback.size(), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
+              static_cast<long long>(feedback_count), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
               static_cast<long long>(no_snapshot), static_cast<long long>(missing),
               static_cast<long long>(undecodable));
   if (auth)

@@ -44,38 +44,6 @@ using WsServer = websocketpp::server<websocketpp::config::asio>;
 using Hdl = websocketpp::connection_hdl;
 using Clock = std::chrono::steady_clock;
 
-ClientCommand parse_client_message(const char* data, size_t size) noexcept {
-  ClientCommand c;
-  if (data == nullptr || size == 0 || size > 4096) return c;
-  try {
-    const json j = json::parse(data, data + size, nullptr, /*allow_exceptions=*/false);
-    if (!j.is_object() || !j.contains("t") || !j["t"].is_string()) return c;
-    const std::string t = j["t"].get<std::string>();
-    auto read_p = [&](Vec3& p) {
-      if (!j.contains("p") || !j["p"].is_array() || j["p"].size() != 3) return false;
-      for (int i = 0; i < 3; ++i) {
-        if (!j["p"][i].is_number()) return false;
-        p[i] = j["p"][i].get<double>();
-      }
-      return p.allFinite() && p.cwiseAbs().maxCoeff() < 1e6;
-    };
-    if (t == "down") {
-      if (!j.contains("i") || !j["i"].is_number_integer() || !read_p(c.p)) return c;
-      const int64_t i = j["i"].get<int64_t>();
-      if (i < 0 || i > (1 << 30)) return c;
-      c.atom = static_cast<int>(i);
-      c.kind = ClientCommand::Kind::kDown;
-    } else if (t == "move") {
-      if (read_p(c.p)) c.kind = ClientCommand::Kind::kMove;
-    } else if (t == "up") {
-      c.kind = ClientCommand::Kind::kUp;
-    }
-  } catch (...) {
-    c = ClientCommand{};
-  }
-  return c;
-}
-
 namespace {
 
 bool is_procedural(const std::string& s) {
@@ -396,6 +364,8 @@ void Viewer::Impl::start_server() {
   srv.clear_error_channels(websocketpp::log::elevel::all);
   srv.init_asio();
   srv.set_reuse_addr(true);
+  srv.set_max_message_size(kMaxClientMessageBytes);     // a page's messages are tiny (input.hpp)
+  srv.set_max_http_body_size(kMaxClientMessageBytes);
   srv.set_http_handler([this](Hdl h) { on_http(h); });
   srv.set_open_handler([this](Hdl h) { on_open(h); });
   srv.set_close_handler([this](Hdl h) { on_close(h); });
@@ -419,15 +389,16 @@ void Viewer::Impl::start_server() {
 
 void Viewer::Impl::on_http(Hdl h) {
   auto con = srv.get_con_from_hdl(h);
-  std::string res = con->get_resource();
-  res = res.substr(0, res.find('?'));
   const std::string* body = nullptr;
   std::string type;
-  if (res == "/" || res == "/index.html") body = &index_html, type = "text/html; charset=utf-8";
-  else if (res == "/viewer.js") body = &viewer_js, type = "text/javascript; charset=utf-8";
-  else if (res == "/vendor/ngl.js") body = &ngl_js, type = "text/javascript; charset=utf-8";
-  else if (res == "/scene.pdb") body = &pdb, type = "chemical/x-pdb";
-  else if (res == "/scene.json") body = &scene_json, type = "application/json";
+  switch (route_resource(con->get_resource())) {
+    case WebResource::kIndex: body = &index_html, type = "text/html; charset=utf-8"; break;
+    case WebResource::kViewerJs: body = &viewer_js, type = "text/javascript; charset=utf-8"; break;
+    case WebResource::kNglJs: body = &ngl_js, type = "text/javascript; charset=utf-8"; break;
+    case WebResource::kScenePdb: body = &pdb, type = "chemical/x-pdb"; break;
+    case WebResource::kSceneJson: body = &scene_json, type = "application/json"; break;
+    case WebResource::kNotFound: break;
+  }
   if (!body) {
     con->set_status(websocketpp::http::status_code::not_found);
     con->set_body("not found\n");

@@ -17,6 +17,7 @@
 
 #include "haptree/bus/bus.hpp"
 #include "haptree/spatial.hpp"
+#include "viewer/input.hpp"
 
 namespace haptree {
 
@@ -33,15 +34,6 @@ struct ViewerOptions {
   size_t max_buffered_bytes = 1 << 20;
   std::string channel_suffix;
 };
-
-// One message from a page, parsed without trusting it (fuzz target: any bytes). Never throws.
-struct ClientCommand {
-  enum class Kind { kInvalid, kDown, kMove, kUp };
-  Kind kind = Kind::kInvalid;
-  int atom = -1;                    // kDown: display point picked (atom, or body for body scenes)
-  Vec3 p = Vec3::Zero();            // kDown/kMove: pointer target, display coordinates (finite)
-};
-ClientCommand parse_client_message(const char* data, size_t size) noexcept;
 
 class Viewer {
  public:

@@ -24,6 +24,27 @@ inline int64_t now_utime() noexcept {
       .count();
 }
 
+// Age of a message stamped `utime`, by this host's clock, in seconds (OriginLock's start check).
+inline double message_age_s(int64_t utime) noexcept { return 1e-6 * static_cast<double>(now_utime() - utime); }
+
+// The origin of an encoded message of type T without decoding it: the header every haptree message starts
+// with (LCM type hash at byte 0, schema_version at 8, utime at 12, instance_id at 20, big-endian). False if
+// it is too short or not a T.
+template <class T>
+bool peek_origin(const void* data, size_t size, int64_t* utime, int64_t* instance_id) noexcept {
+  if (data == nullptr || size < 28) return false;
+  const auto* b = static_cast<const uint8_t*>(data);
+  auto be64 = [b](size_t at) {
+    uint64_t v = 0;
+    for (size_t i = 0; i < 8; ++i) v = (v << 8) | b[at + i];
+    return static_cast<int64_t>(v);
+  };
+  if (be64(0) != T::getHash()) return false;
+  *utime = be64(12);
+  *instance_id = be64(20);
+  return true;
+}
+
 // Big-endian int32 at byte 8: the schema_version of any haptree message (after LCM's 8-byte fingerprint).
 inline bool peek_schema_version(const void* data, size_t size, int32_t* out) noexcept {
   if (data == nullptr || size < 12) return false;

@@ -40,6 +40,8 @@ void to_lcmt(const FeedbackCommand& c, int32_t device_id, int64_t seq, int64_t u
   m.device_id = device_id;
   m.echo_device_seq = c.echo_device_seq;
   m.snapshot_version = c.snapshot_version;
+  m.snapshot_instance_id = c.snapshot_instance;
+  m.echo_device_instance_id = c.echo_device_instance;
   for (int i = 0; i < 3; ++i) {
     m.force_n[i] = c.force_n[i];
     m.torque_nm[i] = c.torque_nm[i];
@@ -50,6 +52,8 @@ void to_lcmt(const FeedbackCommand& c, int32_t device_id, int64_t seq, int64_t u
 void from_lcmt(const lcmt_feedback& m, FeedbackCommand& c) noexcept {
   c.echo_device_seq = m.echo_device_seq;
   c.snapshot_version = m.snapshot_version;
+  c.snapshot_instance = m.snapshot_instance_id;
+  c.echo_device_instance = m.echo_device_instance_id;
   for (int i = 0; i < 3; ++i) {
     c.force_n[i] = m.force_n[i];
     c.torque_nm[i] = m.torque_nm[i];

@@ -13,6 +13,8 @@ namespace haptree::device {
 struct FeedbackCommand {
   int64_t echo_device_seq = 0;    // seq of the DeviceReading this answers
   int64_t snapshot_version = -1;  // coupling snapshot it was computed from
+  int64_t snapshot_instance = 0;  // instance_id of the server that sent that snapshot (0: none)
+  int64_t echo_device_instance = 0;   // instance_id of the device that sent that reading
   Vec3 force_n = Vec3::Zero();
   Vec3 torque_nm = Vec3::Zero();
   int32_t flags = 0;              // lcmt_feedback::FLAG_* (= haptree::SafetyFlag bits)

@@ -114,6 +114,13 @@ ParseResult parse_client_message(const uint8_t* data, size_t size, int32_t max_a
         if (out.indices[i] < 0 || out.indices[i] >= max_atoms)
           return error("atom index " + std::to_string(out.indices[i]) + " outside [0, " +
                        std::to_string(max_atoms) + ")");
+      // A repeated index would apply one atom's pull twice, past the per-atom clamp (found by fuzz/imd_client).
+      out.seen.assign(static_cast<size_t>(max_atoms), 0);
+      for (size_t i = 0; i < n; ++i) {
+        uint8_t& s = out.seen[static_cast<size_t>(out.indices[i])];
+        if (s) return error("atom index " + std::to_string(out.indices[i]) + " given twice");
+        s = 1;
+      }
       for (float f : out.forces)
         if (!std::isfinite(f)) return error("non-finite force component");
       r.status = ParseStatus::kMessage;

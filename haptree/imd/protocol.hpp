@@ -62,6 +62,7 @@ struct ClientMessage {
   int32_t value = 0;               // header length field (e.g. the new rate of kTrate)
   std::vector<int32_t> indices;    // kMdcomm only
   std::vector<float> forces;       // kMdcomm only, 3 per index
+  std::vector<uint8_t> seen;       // scratch of the repeated-index check (max_atoms flags, reused)
 };
 
 enum class ParseStatus { kNeedMore, kMessage, kError };
@@ -75,7 +76,7 @@ struct ParseResult {
 // prefix, wait for more. kError: the stream cannot be a valid IMD stream (unknown or engine-only
 // type, negative count, more than `max_atoms` MD-communication atoms, an index outside
 // [0, max_atoms), a repeated index, a non-finite force); the caller drops the client. Reuses
-// out.indices/out.forces (no allocation once they reached max_atoms). Never reads past size.
+// out.indices/out.forces/out.seen (no allocation once they reached max_atoms). Never reads past size.
 ParseResult parse_client_message(const uint8_t* data, size_t size, int32_t max_atoms, ClientMessage& out);
 
 // Largest packet parse_client_message can ask to buffer for max_atoms atoms (header + MDCOMM body).

@@ -99,6 +99,16 @@ TEST(ImdProtocol, RejectsGarbageWithoutWaitingForIt) {
   std::memcpy(body.data() + 8, &nan, 4);
   EXPECT_EQ(status(6, 1, body).status, imd::ParseStatus::kError);     // non-finite force
   EXPECT_EQ(imd::max_client_message_bytes(10), 8u + 160u);
+  // One atom twice (fuzz/imd_client found it accepted): its pull would be applied twice.
+  std::vector<uint8_t> twice(32, 0);
+  const int32_t idx[2] = {3, 3};
+  std::memcpy(twice.data(), idx, 8);
+  const auto dup = status(6, 2, twice);
+  EXPECT_EQ(dup.status, imd::ParseStatus::kError);
+  EXPECT_NE(dup.error.find("atom index 3 given twice"), std::string::npos) << dup.error;
+  const int32_t distinct[2] = {3, 4};
+  std::memcpy(twice.data(), distinct, 8);
+  EXPECT_EQ(status(6, 2, twice).status, imd::ParseStatus::kMessage);
 }
 
 // Random streams (a seeded smoke test; T's fuzz target runs the same pure function longer): the

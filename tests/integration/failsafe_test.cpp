@@ -467,5 +467,32 @@ TEST(Failsafe, DeviceBridgeFollowsOneCouplerPerFeedbackChannel) {
   EXPECT_EQ(bridge.coupler_takeovers(), 1);
 }
 
+// Issue 11, defect 4 over LCM: two couplers on one device's FEEDBACK channel. Over shm the coupler reads its
+// segment's writer; over LCM it watches the channel: another live instance's FEEDBACK is counted (and warned
+// about once from the stats tick), its own echoes and replays of old messages are not.
+TEST(Failsafe, CouplerOverLcmNoticesASecondCouplerOnItsDevice) {
+  bus::Bus bus("memq://");
+  CouplerOptions co;
+  co.grab_body = 1;
+  Coupler coupler(bus, co);
+  bus::HandlerThread handler(bus, 2);
+  auto publish = [&](int64_t inst, int64_t utime) {
+    lcmt_feedback f{};
+    bus::stamp(f, inst, utime);
+    f.seq = 1;
+    bus.publish(bus::channel::feedback(0), f);
+  };
+  for (int i = 0; i < 20; ++i) publish(coupler.instance_id(), bus::now_utime());            // its own
+  for (int i = 0; i < 20; ++i) publish(333, bus::now_utime() - 3600LL * 1000000);           // a replay
+  std::this_thread::sleep_for(100ms);
+  const int64_t before = coupler.counters().other_feedback_writer.load();
+  for (int i = 0; i < 5; ++i) publish(333, bus::now_utime());                               // a second coupler
+  std::this_thread::sleep_for(100ms);
+  const int64_t after = coupler.counters().other_feedback_writer.load();
+  handler.stop();
+  EXPECT_EQ(before, 0);
+  EXPECT_EQ(after, 5);
+}
+
 }  // namespace
 }  // namespace haptree

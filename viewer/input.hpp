@@ -1,0 +1,31 @@
+#pragma once
+// What the viewer accepts from a browser, parsed without trusting it: the WebSocket text messages of the
+// page's pointer (parse_client_message) and the HTTP resource of a request (route_resource). Pure
+// functions on bytes, in their own small library (haptree_viewer_input) so the fuzz targets
+// (fuzz/viewer_ws.cpp, fuzz/viewer_http.cpp) call exactly what the viewer calls.
+#include <cstddef>
+#include <string>
+
+#include "haptree/spatial.hpp"
+
+namespace haptree {
+
+// Largest message a page sends (its pointer JSON is < 100 bytes); the viewer's WebSocket and HTTP body
+// limits too, so a client cannot make the server buffer more (websocketpp's default is 32 MB).
+constexpr size_t kMaxClientMessageBytes = 4096;
+
+// One message from a page (fuzz target: any bytes); longer than kMaxClientMessageBytes: refused unread.
+// Never throws.
+struct ClientCommand {
+  enum class Kind { kInvalid, kDown, kMove, kUp };
+  Kind kind = Kind::kInvalid;
+  int atom = -1;                    // kDown: display point picked (atom, or body for body scenes)
+  Vec3 p = Vec3::Zero();            // kDown/kMove: pointer target, display coordinates (finite)
+};
+ClientCommand parse_client_message(const char* data, size_t size) noexcept;
+
+// The files the viewer serves; kNotFound for anything else. The query string is ignored.
+enum class WebResource { kNotFound, kIndex, kViewerJs, kNglJs, kScenePdb, kSceneJson };
+WebResource route_resource(const std::string& resource) noexcept;
+
+}  // namespace haptree
