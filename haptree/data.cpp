@@ -68,6 +68,7 @@ Data::Data(const Model& model) {
   ca.assign(nc, Vec6::Zero());
   cb.assign(nc, Vec6::Zero());
   cluster_live.assign(nn, 0);
+  dca_cut = parallel_cut(t, 1, 0);
 }
 
 }  // namespace haptree

@@ -30,8 +30,18 @@ void dca_top_down_node(const Model& model, Data& data, int node) noexcept;
 void dca_bottom_up(const Model& model, Data& data, const State& state) noexcept;
 void dca_top_down(const Model& model, Data& data) noexcept;
 
-// Full forward dynamics: kinematics, both passes. Returns data.qdd.
+// Full forward dynamics: kinematics, both passes. Returns data.qdd. With data.dca_threads > 1 the
+// passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
+
+// Threads for forward_dynamics (issue 13.4). threads = 1: serial (the default). threads > 1: that
+// many, if the build has OpenMP. threads = 0: automatic, i.e. on only where it pays: at least
+// kDcaParallelMinNodes assembly nodes and at least 2 CPUs in this process's affinity mask (then
+// one thread per CPU). Allocates the schedule; call once, not per step. Returns the threads used.
+// Off by default because the embedded session's sim shares its 2 cores with the coupler and the
+// device bridge: a second DCA thread would take the coupler's core.
+constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (break-even measured: docs/benchmarks.md)
+int set_dca_threads(const Model& model, Data& data, int threads);
 
 // Joint motion subspace S (6×n), constraint basis T (6×(6−n)) and D (6×n) at the handle point, world
 // axes (§1 table). Fixed-max-size matrices: no allocation.
