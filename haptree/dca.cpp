@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 
 namespace haptree {
 
@@ -865,8 +866,15 @@ int cpus_available() {
 
 int set_dca_threads(const Model& m, Data& d, int threads) {
 #ifdef _OPENMP
-  if (threads == 0)
-    threads = m.tree.nnodes() >= kDcaParallelMinNodes ? std::max(1, cpus_available()) : 1;
+  if (threads == 0) {
+    // A free core: the 1-minute load average (this thread included) leaves at least one CPU idle.
+    // On a loaded machine the second thread waits for a core at every barrier: 2 threads at load
+    // 20 on 2 CPUs took 5x the serial wall time (docs/benchmarks.md, issue 13.4).
+    const int cpus = cpus_available();
+    double load = 1e9;
+    const bool free_core = getloadavg(&load, 1) == 1 && load <= cpus - 1;
+    threads = m.tree.nnodes() >= kDcaParallelMinNodes && cpus >= 2 && free_core ? cpus : 1;
+  }
 #else
   threads = 1;   // built without OpenMP
 #endif

@@ -36,11 +36,12 @@ const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const St
 
 // Threads for forward_dynamics (issue 13.4). threads = 1: serial (the default). threads > 1: that
 // many, if the build has OpenMP. threads = 0: automatic, i.e. on only where it pays: at least
-// kDcaParallelMinNodes assembly nodes and at least 2 CPUs in this process's affinity mask (then
-// one thread per CPU). Allocates the schedule; call once, not per step. Returns the threads used.
+// kDcaParallelMinNodes assembly nodes, at least 2 CPUs in this process's affinity mask and a free
+// core now (1-minute load average ≤ CPUs − 1); then one thread per CPU. Decided at this call (call
+// again to re-decide). Allocates the schedule; not per step. Returns the threads used.
 // Off by default because the embedded session's sim shares its 2 cores with the coupler and the
 // device bridge: a second DCA thread would take the coupler's core.
-constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (break-even measured: docs/benchmarks.md)
+constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (docs/benchmarks.md, issue 13.4)
 int set_dca_threads(const Model& model, Data& data, int threads);
 
 // Joint motion subspace S (6×n), constraint basis T (6×(6−n)) and D (6×n) at the handle point, world

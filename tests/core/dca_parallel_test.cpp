@@ -107,7 +107,8 @@ TEST(DcaParallelModel, NodeCountSpeedUpOn2And16Threads) {
   };
   // min2: 2 threads, 8 tasks; min16: 16 threads, 64 tasks, grain 64 nodes. The centroid-edge
   // trees split into near-equal halves, so 8 tasks on 2 threads leave ≤ 5 % idle; on 16 threads the
-  // ~log2(16) top levels and the grain limit the count (counted: chain 1024 12.9, binary tree 1023 11.8, protein-like 12.3).
+  // ~log2(16) top levels and the grain limit the count (counted: chain 1024 12.9, binary tree
+  // 1023 11.8, protein-like 12.3).
   const Expect cases[] = {{{"chain", 1024, 0, false}, 1.9, 11.0},
                           {{"binary_tree", 1023, 0, false}, 1.9, 11.0},
                           {{"protein_like", 857, 0, false}, 1.9, 11.0}};
