@@ -21,6 +21,12 @@ using Clock = std::chrono::steady_clock;
 static const Clock::time_point kEpoch = Clock::now();
 static double now_s() { return std::chrono::duration<double>(Clock::now() - kEpoch).count(); }
 
+FeedbackRenderer feedback_renderer(const DeviceBridgeOptions& o) {
+  const double rate = o.max_force_rate_n_per_s > 0 ? o.max_force_rate_n_per_s : o.max_force_n / o.feedback_ramp_down_s;
+  return FeedbackRenderer(WatchdogParams{o.feedback_timeout_s, o.feedback_ramp_down_s, o.feedback_ramp_up_s},
+                          o.max_force_n, rate / o.rate_hz);
+}
+
 DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
     : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()),
       coupler_lock_(options.feedback_timeout_s) {
@@ -32,9 +38,7 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
     throw std::invalid_argument("device_bridge: the feedback ramps must be positive");
   if (!(std::isfinite(opt_.max_force_rate_n_per_s) && opt_.max_force_rate_n_per_s >= 0))
     throw std::invalid_argument("device_bridge: --max-force-rate-n-per-s must be >= 0 (0: the clamp within 5 ms)");
-  feedback_watchdog_ = Watchdog(WatchdogParams{opt_.feedback_timeout_s, opt_.feedback_ramp_down_s, opt_.feedback_ramp_up_s});
-  const double rate = opt_.max_force_rate_n_per_s > 0 ? opt_.max_force_rate_n_per_s : opt_.max_force_n / opt_.feedback_ramp_down_s;
-  max_step_n_ = rate / opt_.rate_hz;
+  renderer_ = feedback_renderer(opt_);
   if (!(std::isfinite(opt_.mirror_rate_hz) && opt_.mirror_rate_hz >= 0))
     throw std::invalid_argument("device_bridge: --mirror-rate-hz must be >= 0");
   if (opt_.device < 0) throw std::invalid_argument("device_bridge: --device must be >= 0");
@@ -164,14 +168,10 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     }
     const double t_fb = feedback_time_s_.load(std::memory_order_acquire);
     const double now = now_s();
-    const double g = feedback_watchdog_.update(now, t_fb < 0 ? std::numeric_limits<double>::infinity() : now - t_fb);
-    const Vec3 target = g * clamp_norm(finite_or_zero(Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2])), opt_.max_force_n);
-    const Vec3 d = target - rendered_;
-    const Vec3 f = d.norm() <= max_step_n_ ? target : Vec3(rendered_ + d * (max_step_n_ / d.norm()));
+    const Vec3 f = renderer_.render(now, t_fb < 0 ? std::numeric_limits<double>::infinity() : now - t_fb,
+                                    Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2]));
     device_->write_force(f);
-    const double step = (f - rendered_).norm();
-    if (step > max_force_step_n_.load(std::memory_order_relaxed)) max_force_step_n_.store(step, std::memory_order_relaxed);
-    rendered_ = f;
+    max_force_step_n_.store(renderer_.max_step_seen(), std::memory_order_relaxed);
     last_force_n_.store(f.norm(), std::memory_order_relaxed);
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());
     next += period;
@@ -207,9 +207,9 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
                              stop);
   }
   // Stopping: down to zero at the rate limit (at most the ramp-down time), then zero.
-  for (int k = 0; k < 1000 && rendered_.norm() > 0; ++k) {
-    rendered_ -= clamp_norm(rendered_, max_step_n_);
-    device_->write_force(rendered_);
+  for (int k = 0; k < 1000 && renderer_.rendered().norm() > 0; ++k) {
+    renderer_.ramp_down();
+    device_->write_force(renderer_.rendered());
     std::this_thread::sleep_for(std::chrono::duration<double>(period));
   }
   device_->write_force(Vec3::Zero());

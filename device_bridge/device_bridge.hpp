@@ -41,6 +41,10 @@ struct DeviceBridgeOptions {
   std::string channel_suffix;
 };
 
+// The renderer a bridge with these options uses: its feedback watchdog, clamp and rate limit (default: the
+// clamp within feedback_ramp_down_s, i.e. 0.6 N per 1 ms tick for 3 N).
+FeedbackRenderer feedback_renderer(const DeviceBridgeOptions& o);
+
 class DeviceBridge {
  public:
   DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options);
@@ -89,9 +93,7 @@ class DeviceBridge {
   bus::LatencyHistogram hist_;           // written by whoever receives feedback (one thread at a time)
   std::atomic<int64_t> readings_{0}, feedbacks_{0};
   std::atomic<double> last_force_n_{0}, max_force_n_{0}, max_force_step_n_{0}, feedback_time_s_{-1};
-  Vec3 rendered_ = Vec3::Zero();   // loop thread: the force written at the previous tick
-  Watchdog feedback_watchdog_;     // loop thread: ramps instead of cutting when FEEDBACK stops and returns
-  double max_step_n_ = 0;          // max_force_rate_n_per_s / rate_hz: the largest change per tick
+  FeedbackRenderer renderer_;      // loop thread: feedback -> the force written to the device
 };
 
 }  // namespace haptree

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cstdlib>
+#include <functional>
+#include <queue>
 #include <stdexcept>
 
 namespace haptree {
@@ -114,6 +116,44 @@ AssemblyTree build_assembly_tree(const std::vector<int>& parent) {
     t.max_depth = std::max(t.max_depth, t.depth[node]);
   }
   return t;
+}
+
+ParallelCut parallel_cut(const AssemblyTree& t, int ntasks, int grain) {
+  const int nn = t.nnodes();
+  std::vector<int> size(nn, 1);
+  for (int node = nn - 1; node >= 0; --node)
+    if (!t.is_leaf(node)) size[node] = 1 + size[t.P[node]] + size[t.Q[node]];
+  using Item = std::pair<int, int>;   // (subtree size, node): the largest is split first
+  std::priority_queue<Item> heap;
+  for (int r : t.roots) heap.push({size[r], r});
+  ParallelCut c;
+  while (static_cast<int>(heap.size()) < ntasks && heap.top().first > grain &&
+         !t.is_leaf(heap.top().second)) {
+    const int node = heap.top().second;
+    heap.pop();
+    c.top.push_back(node);
+    heap.push({size[t.P[node]], t.P[node]});
+    heap.push({size[t.Q[node]], t.Q[node]});
+  }
+  for (; !heap.empty(); heap.pop()) {   // largest first: the order a dynamic schedule should take
+    c.lo.push_back(heap.top().second);
+    c.hi.push_back(heap.top().second + heap.top().first);
+  }
+  std::sort(c.top.begin(), c.top.end());
+  return c;
+}
+
+std::int64_t cut_makespan(const ParallelCut& c, int p) {
+  std::priority_queue<std::int64_t, std::vector<std::int64_t>, std::greater<>> load;
+  for (int i = 0; i < std::max(p, 1); ++i) load.push(0);
+  for (size_t i = 0; i < c.lo.size(); ++i) {   // tasks are stored largest first
+    const std::int64_t l = load.top();
+    load.pop();
+    load.push(l + (c.hi[i] - c.lo[i]));
+  }
+  std::int64_t span = 0;
+  for (; !load.empty(); load.pop()) span = std::max(span, load.top());
+  return span + static_cast<std::int64_t>(c.top.size());
 }
 
 }  // namespace haptree

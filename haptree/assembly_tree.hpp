@@ -3,6 +3,7 @@
 // descending" is bottom-up and "ascending" is top-down.
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 namespace haptree {
@@ -41,5 +42,21 @@ struct AssemblyTree {
 // Builds the tree for bodies 0..n-1 with parent[k] < k (parent[0] = -1) by centroid-edge
 // decomposition (§4.3); chains give the middle-split tree of §4.2.
 AssemblyTree build_assembly_tree(const std::vector<int>& parent);
+
+// A static schedule for the DCA passes on several threads (issue 13.4). Node ids are pre-order, so
+// every subtree is an id range: the tasks are disjoint subtrees [lo, hi), each swept by one thread
+// (ids descending bottom-up, ascending top-down); `top` holds the nodes above them, ids ascending,
+// run by one thread after the tasks bottom-up and before them top-down. No other synchronisation.
+struct ParallelCut {
+  std::vector<int> lo, hi;   // task subtrees
+  std::vector<int> top;      // the split nodes
+};
+// Splits the largest subtree until there are `ntasks` tasks or the largest has at most `grain`
+// nodes. ntasks = 1 gives one task per root.
+ParallelCut parallel_cut(const AssemblyTree& t, int ntasks, int grain);
+// Node-count model of one pass on p threads: tasks assigned longest first to the least loaded
+// thread, plus the top nodes in series. Returns that makespan in nodes; nnodes / makespan is the
+// modelled speed-up (a count, for tests and the 16-core model, not a timing).
+std::int64_t cut_makespan(const ParallelCut& c, int p);
 
 }  // namespace haptree

@@ -77,6 +77,8 @@ Data::Data(const Model& model) {
     if ((t.is_leaf(P) && t.body[P] != 0) || (t.is_leaf(Q) && t.body[Q] != 0)) leaf_adr[node] = nleaf++;
   }
   leaf_F.assign(nleaf, Mat6::Zero());
+
+  dca_cut = parallel_cut(t, 1, 0);
 }
 
 }  // namespace haptree

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "haptree/assembly_tree.hpp"
 #include "haptree/model.hpp"
 
 namespace haptree {
@@ -85,6 +86,11 @@ struct Data {
   std::vector<Mat6> leaf_F;                 // (nodes with a leaf child)
 
   Eigen::VectorXd qdd;          // (nv) output of forward_dynamics
+
+  // Threads of forward_dynamics' passes and their schedule (set_dca_threads; issue 13.4). 1 (the
+  // default) runs everything on the calling thread.
+  int dca_threads = 1;
+  ParallelCut dca_cut;          // one task per root until set_dca_threads splits it
   Diagnostics diag;
 
   int h(const Model& m, int node) const { return m.tree.handle_num[node]; }

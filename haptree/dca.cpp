@@ -1,7 +1,10 @@
 #include "haptree/dca.hpp"
 
+#include <sched.h>
+
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 
 namespace haptree {
 
@@ -86,17 +89,27 @@ Vec6 joint_motion_terms(const Model& m, Data& d, int k, const Eigen::VectorXd& q
   return d.v[k];
 }
 
+namespace {
+
+// The per-body part of body_dynamics_terms (needs R[k] and v[k]); independent across bodies, so
+// the parallel driver runs it in the leaf that reads it.
+inline void body_inertia_terms(const Model& m, Data& d, const State& st, int k) {
+  const Mat3& Rk = d.R[k];
+  const Vec3 cw = Rk * m.com[k];
+  const Mat3 Ic = Rk * m.inertia[k] * Rk.transpose();
+  d.I[k] = spatial_inertia(m.mass[k], cw, Ic);
+  d.Iinv[k] = spatial_inertia_inverse(m.mass[k], cw, Ic);
+  d.f_total[k] = gravity_force(m.mass[k], cw, m.gravity) + st.f_ext[k];
+  d.p_bias[k] = d.f_total[k] - cross_force(d.v[k], d.I[k] * d.v[k]);
+}
+
+}  // namespace
+
 void body_dynamics_terms(const Model& m, Data& d, const State& st) noexcept {
   d.v[0].setZero();
   for (int k = 1; k < m.nbodies; ++k) {
     joint_motion_terms(m, d, k, st.qd, d.v[m.parent[k]]);
-    const Mat3& Rk = d.R[k];
-    const Vec3 cw = Rk * m.com[k];
-    const Mat3 Ic = Rk * m.inertia[k] * Rk.transpose();
-    d.I[k] = spatial_inertia(m.mass[k], cw, Ic);
-    d.Iinv[k] = spatial_inertia_inverse(m.mass[k], cw, Ic);
-    d.f_total[k] = gravity_force(m.mass[k], cw, m.gravity) + st.f_ext[k];
-    d.p_bias[k] = d.f_total[k] - cross_force(d.v[k], d.I[k] * d.v[k]);
+    body_inertia_terms(m, d, st, k);
   }
 }
 
@@ -257,9 +270,9 @@ int assemble_joint(const Model& m, Data& d, int node, const Eigen::VectorXd& tau
     case 6: ok = constraint_inverse<6>(Phat, T, W, Xout); break;
     default: W.setZero(); ok = false; nc = 0;   // no joint type has 1, 2 or 4 constraints
   }
-  if (!ok) {
-    ++d.diag.singular_pivots;
-    d.diag.last_bad_node = node;
+  if (!ok) {   // atomic: parallel passes (set_dca_threads) may assemble two bad nodes at once
+    __atomic_fetch_add(&d.diag.singular_pivots, 1, __ATOMIC_RELAXED);
+    __atomic_store_n(&d.diag.last_bad_node, node, __ATOMIC_RELAXED);
   }
   const int nJ = static_cast<int>(S.cols());
   Vec6& taut = d.taut[node];
@@ -967,8 +980,9 @@ void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
   }
 }
 
-void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
-  const auto& t = m.tree;
+namespace {
+
+void cluster_offsets(const Model& m, Data& d) {
   if (m.ncluster_nodes > 0)
     for (int k = 1; k < m.nbodies; ++k) {
       if (m.cluster_root[k] == k) {
@@ -986,18 +1000,20 @@ void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
       d.cluster_offset[k] = s;
       d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + err;
     }
+}
+
+inline void bottom_up_node(const Model& m, Data& d, const State& st, int node) {
+  dca_bottom_up_node(m, d, node, st.tau);
+}
+
+}  // namespace
+
+void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
+  const auto& t = m.tree;
+  cluster_offsets(m, d);
   std::int64_t count = 0;
   for (int node = t.nnodes() - 1; node >= 0; --node) {
-    if (t.is_leaf(node)) {
-      dca_leaf(m, d, node);
-    } else {
-      if (m.cluster_index[node] >= 0) {
-        assemble_joint(m, d, node, st.tau);   // W, β for coupling and metric readers
-        assemble_inertia_form(m, d, node, st.tau);
-      } else {
-        dca_assemble(m, d, node, st.tau);
-      }
-    }
+    bottom_up_node(m, d, st, node);
     ++count;
   }
   d.diag.nodes_bottom_up = count;
@@ -1018,8 +1034,83 @@ void dca_top_down(const Model& m, Data& d) noexcept {
     if (!std::isfinite(d.qdd(i))) { ++d.diag.nonfinite; break; }
 }
 
+namespace {
+
+// One task of the parallel passes: the subtree [lo, hi), ids descending; each leaf first computes
+// its body's inertia terms (one sweep over memory instead of two).
+void bottom_up_task(const Model& m, Data& d, const State& st, int lo, int hi) {
+  const auto& t = m.tree;
+  for (int node = hi - 1; node >= lo; --node) {
+    if (t.is_leaf(node) && t.body[node] > 0) body_inertia_terms(m, d, st, t.body[node]);
+    bottom_up_node(m, d, st, node);
+  }
+}
+void top_down_task(const Model& m, Data& d, int lo, int hi) {
+  const auto& t = m.tree;
+  for (int node = lo; node < hi; ++node)
+    if (!t.is_leaf(node)) dca_top_down_node(m, d, node);
+}
+
+// forward_dynamics on d.dca_threads threads over d.dca_cut (ParallelCut). Every node runs the same
+// kernel on the same inputs as in the serial passes, so the result is bit-for-bit the same.
+void parallel_passes(const Model& m, Data& d, const State& st) {
+  const auto& t = m.tree;
+  const ParallelCut& cut = d.dca_cut;
+  const int ntask = static_cast<int>(cut.lo.size());
+  d.v[0].setZero();
+  for (int k = 1; k < m.nbodies; ++k) joint_motion_terms(m, d, k, st.qd, d.v[m.parent[k]]);
+  cluster_offsets(m, d);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(d.dca_threads)
+  for (int i = 0; i < ntask; ++i) bottom_up_task(m, d, st, cut.lo[i], cut.hi[i]);
+  for (size_t i = cut.top.size(); i-- > 0;) bottom_up_node(m, d, st, cut.top[i]);
+  d.diag.nodes_bottom_up = t.nnodes();
+
+  for (int root : t.roots)
+    for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
+  for (int node : cut.top) dca_top_down_node(m, d, node);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(d.dca_threads)
+  for (int i = 0; i < ntask; ++i) top_down_task(m, d, cut.lo[i], cut.hi[i]);
+  std::int64_t internal = 0;
+  for (int node = 0; node < t.nnodes(); ++node) internal += t.is_leaf(node) ? 0 : 1;
+  d.diag.nodes_top_down = internal;
+  for (int i = 0; i < m.nv; ++i)
+    if (!std::isfinite(d.qdd(i))) { ++d.diag.nonfinite; break; }
+}
+
+int cpus_available() {
+  cpu_set_t set;
+  if (sched_getaffinity(0, sizeof(set), &set) != 0) return 1;
+  return CPU_COUNT(&set);
+}
+
+}  // namespace
+
+int set_dca_threads(const Model& m, Data& d, int threads) {
+#ifdef _OPENMP
+  if (threads == 0) {
+    // A free core: the 1-minute load average (this thread included) leaves at least one CPU idle.
+    // On a loaded machine the second thread waits for a core at every barrier: 2 threads at load
+    // 20 on 2 CPUs took 5x the serial wall time (docs/benchmarks.md, issue 13.4).
+    const int cpus = cpus_available();
+    double load = 1e9;
+    const bool free_core = getloadavg(&load, 1) == 1 && load <= cpus - 1;
+    threads = m.tree.nnodes() >= kDcaParallelMinNodes && cpus >= 2 && free_core ? cpus : 1;
+  }
+#else
+  threads = 1;   // built without OpenMP
+#endif
+  d.dca_threads = std::max(1, threads);
+  // 4 tasks per thread so a dynamic schedule evens out unequal subtrees; none below 64 nodes.
+  d.dca_cut = parallel_cut(m.tree, d.dca_threads == 1 ? 1 : 4 * d.dca_threads, 64);
+  return d.dca_threads;
+}
+
 const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st) noexcept {
   forward_kinematics(m, d, st.q);
+  if (d.dca_threads > 1) {
+    parallel_passes(m, d, st);
+    return d.qdd;
+  }
   body_dynamics_terms(m, d, st);
   dca_bottom_up(m, d, st);
   dca_top_down(m, d);
@@ -1074,30 +1165,13 @@ double potential_energy(const Model& m, const Data& d) noexcept {
 
 // Hooks for adaptive.cpp (issue 13.1): the same steps as dca_bottom_up, split (kept apart from it
 // so that the pass itself is unchanged).
-void dca_cluster_offsets(const Model& m, Data& d) noexcept {
-  if (m.ncluster_nodes == 0) return;
-  for (int k = 1; k < m.nbodies; ++k) {
-    if (m.cluster_root[k] == k) {
-      d.cluster_offset[k].setZero();
-      d.cluster_offset_lo[k].setZero();
-      continue;
-    }
-    const int p = m.parent[k];
-    const Vec3& a = d.cluster_offset[p];
-    const Vec3& b = d.d[k];
-    const Vec3 s = a + b;
-    const Vec3 bb = s - a;
-    const Vec3 err = (a - (s - bb)) + (b - bb);
-    d.cluster_offset[k] = s;
-    d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + err;
-  }
-}
+void dca_cluster_offsets(const Model& m, Data& d) noexcept { cluster_offsets(m, d); }
 
 void dca_bottom_up_node(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
   if (m.tree.is_leaf(node)) {
     dca_leaf(m, d, node);
   } else if (m.cluster_index[node] >= 0) {
-    assemble_joint(m, d, node, tau);
+    assemble_joint(m, d, node, tau);   // W, β for coupling and metric readers
     assemble_inertia_form(m, d, node, tau);
   } else {
     dca_assemble(m, d, node, tau);

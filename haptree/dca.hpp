@@ -35,8 +35,19 @@ void dca_cluster_offsets(const Model& model, Data& data) noexcept;
 void dca_bottom_up_node(const Model& model, Data& data, int node, const Eigen::VectorXd& tau) noexcept;
 void dca_top_down(const Model& model, Data& data) noexcept;
 
-// Full forward dynamics: kinematics, both passes. Returns data.qdd.
+// Full forward dynamics: kinematics, both passes. Returns data.qdd. With data.dca_threads > 1 the
+// passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
+
+// Threads for forward_dynamics (issue 13.4). threads = 1: serial (the default). threads > 1: that
+// many, if the build has OpenMP. threads = 0: automatic, i.e. on only where it pays: at least
+// kDcaParallelMinNodes assembly nodes, at least 2 CPUs in this process's affinity mask and a free
+// core now (1-minute load average ≤ CPUs − 1); then one thread per CPU. Decided at this call (call
+// again to re-decide). Allocates the schedule; not per step. Returns the threads used.
+// Off by default because the embedded session's sim shares its 2 cores with the coupler and the
+// device bridge: a second DCA thread would take the coupler's core.
+constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (docs/benchmarks.md, issue 13.4)
+int set_dca_threads(const Model& model, Data& data, int threads);
 
 // Joint motion subspace S (6×n), constraint basis T (6×(6−n)) and D (6×n) at the handle point, world
 // axes (§1 table). Fixed-max-size matrices: no allocation.

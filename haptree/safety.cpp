@@ -82,6 +82,22 @@ GuardedForce ForceSafety::apply(double now_s, double input_age_s, const Vec3& fo
   return out;
 }
 
+const Vec3& FeedbackRenderer::render(double now_s, double feedback_age_s, const Vec3& feedback) noexcept {
+  const double g = watchdog_.update(now_s, feedback_age_s);
+  const Vec3 target = g * clamp_norm(finite_or_zero(feedback), max_force_);
+  const Vec3 d = target - rendered_;
+  const double n = d.norm();
+  const Vec3 f = n <= max_step_ ? target : Vec3(rendered_ + d * (max_step_ / n));
+  max_step_seen_ = std::max(max_step_seen_, (f - rendered_).norm());
+  rendered_ = f;
+  return rendered_;
+}
+
+bool FeedbackRenderer::ramp_down() noexcept {
+  rendered_ -= clamp_norm(rendered_, max_step_);
+  return rendered_.norm() > 0;
+}
+
 void PassivityObserver::add_power(double power, double dt) noexcept {
   if (!std::isfinite(power) || !std::isfinite(dt) || dt < 0) {
     ++ignored_;

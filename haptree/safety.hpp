@@ -87,6 +87,30 @@ class ForceSafety {
   int64_t clamp_events_ = 0, nonfinite_events_ = 0;
 };
 
+// What a device renders each tick from the latest FEEDBACK: NaN -> 0, clamped, times the device's own
+// watchdog gain on the feedback's age (stale: ramp to zero; fresh again: ramp back in), and never changing by
+// more than max_step per tick, a jerk guard at the hand (issue 15.2). The device_bridge renders with it, and
+// the chaos soak's monitor renders the same way.
+class FeedbackRenderer {
+ public:
+  FeedbackRenderer() = default;
+  FeedbackRenderer(const WatchdogParams& watchdog, double max_force, double max_step) noexcept
+      : watchdog_(watchdog), max_force_(max_force), max_step_(max_step) {}
+  // feedback_age_s: NaN/Inf (no feedback yet) counts as stale.
+  const Vec3& render(double now_s, double feedback_age_s, const Vec3& feedback) noexcept;
+  // One tick towards zero at the rate limit (stopping); true while not yet zero.
+  bool ramp_down() noexcept;
+  const Vec3& rendered() const noexcept { return rendered_; }
+  double max_step_seen() const noexcept { return max_step_seen_; }
+  double max_step() const noexcept { return max_step_; }
+  const Watchdog& watchdog() const noexcept { return watchdog_; }
+
+ private:
+  Watchdog watchdog_;
+  double max_force_ = 0, max_step_ = 0, max_step_seen_ = 0;
+  Vec3 rendered_ = Vec3::Zero();
+};
+
 // Passivity observer after Ryu & Hannaford (2002): integrates the power flowing INTO the coupling through
 // its ports, E(t) = Σ ∫ f·v dt, where f is the force the outside exerts on the coupling at a port and v
 // that port's velocity. For the device port that is f = −f_feed (the device pushes back on the coupling

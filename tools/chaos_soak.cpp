@@ -116,6 +116,8 @@ struct DeviceCounts {
   int64_t ticks = 0, feedbacks = 0, nonzero_ticks = 0;
   int64_t nonfinite = 0, above_clamp = 0, jumps = 0, ghost = 0, drops_to_zero = 0;
   double max_f = 0, max_jump = 0, max_ghost = 0;
+  int64_t feedback_steps = 0;   // FEEDBACK changes above the limit before the device's rate limit (information)
+  double max_feedback_step = 0;
 };
 
 // Byte offsets of the header every haptree message starts with (LCM: 8-byte type hash, then the fields in
@@ -153,7 +155,7 @@ int main(int argc, char** argv) {
   CLI::App app{"chaos_soak: a three-process haptree session under process kills and garbage, stale and replayed "
                "messages; reports counts that must all be zero (docs/chaos.md)"};
   double duration_s = 600, kill_min_s = 2, kill_max_s = 5, pause_min_s = 0.2, pause_max_s = 1.0;
-  double burst_min_s = 0.5, burst_max_s = 2.0, jump_n = 0.5, stale_after_s = 0.05, max_force_n = 3.0;
+  double burst_min_s = 0.5, burst_max_s = 2.0, jump_n = 0, stale_after_s = 0.05, max_force_n = 3.0;
   int burst_messages = 40, n = 32;
   uint64_t seed = 0;
   std::string bin_dir, log_dir, replay_exe;
@@ -165,8 +167,9 @@ int main(int argc, char** argv) {
   app.add_option("--burst-min-s", burst_min_s, "shortest time between two bursts of bad messages, s")->check(CLI::Range(0.01, 1e4))->capture_default_str();
   app.add_option("--burst-max-s", burst_max_s, "longest time between two bursts, s")->check(CLI::Range(0.01, 1e4))->capture_default_str();
   app.add_option("--burst-messages", burst_messages, "bad messages per burst (garbage, stale, replayed)")->check(CLI::Range(0, 100000))->capture_default_str();
-  app.add_option("--jump-n", jump_n, "largest allowed change of the rendered force between two 1 ms device ticks, N "
-                 "(a drop to exactly zero, the fail-safe action, is allowed and counted apart)")->check(CLI::Range(1e-6, 1e3))->capture_default_str();
+  app.add_option("--jump-n", jump_n, "largest allowed change of the rendered force between two 1 ms device ticks, N; 0: the device_bridge's "
+                 "own rate limit (0.6 N per tick for the 3 N clamp: docs/network_faults.md) "
+                 "(a drop to exactly zero, the fail-safe action, is allowed and counted apart)")->check(CLI::Range(0.0, 1e3))->capture_default_str();
   app.add_option("--n", n, "bodies of the protein_like scene")->check(CLI::Range(8, 4096))->capture_default_str();
   app.add_option("--seed", seed, "random seed (0: from the clock; printed)");
   app.add_option("--bin-dir", bin_dir, "directory of sim_server, coupler, device_bridge, replay_coupling (default: the build tree)");
@@ -293,12 +296,13 @@ int main(int argc, char** argv) {
   DeviceCounts dc;
   std::atomic<bool> monitor_stop{false};
   const double ghost_bound_s = stale_after_s + haptree::WatchdogParams{}.ramp_down_s + 0.05;   // + 50 ms of slack
+  if (jump_n == 0) jump_n = haptree::feedback_renderer(haptree::DeviceBridgeOptions{}).max_step() * (1 + 1e-9);  // 1e-9: rounding
   std::thread monitor([&] {
     const haptree::DeviceBridgeOptions bridge;   // its feedback timeout and ramp-in, as the bridge renders
     bus::ShmReader fb_reader(bus::channel::feedback(0, suffix), bridge.feedback_timeout_s);
-    haptree::Watchdog gain(haptree::WatchdogParams{bridge.feedback_timeout_s, 0.0, bridge.feedback_ramp_up_s});
+    haptree::FeedbackRenderer renderer = haptree::feedback_renderer(bridge);
     haptree::lcmt_feedback fb{};
-    Vec3 last = Vec3::Zero(), prev_rendered = Vec3::Zero();
+    Vec3 last = Vec3::Zero(), prev_rendered = Vec3::Zero(), prev_feedback = Vec3::Zero();
     double last_new_s = -1;
     auto next = Clock::now();
     while (!monitor_stop.load()) {
@@ -311,8 +315,14 @@ int main(int argc, char** argv) {
         last_new_s = t;
         for (double v : fb.torque_nm) dc.nonfinite += !std::isfinite(v);
       }
-      const double g = gain.update(t, last_new_s >= 0 ? t - last_new_s : 1e9);
-      Vec3 f = g > 0 ? Vec3(g * last) : Vec3::Zero();
+      if (!last.allFinite()) ++dc.nonfinite;
+      const double fb_step = (last - prev_feedback).norm();
+      if (fb_step > jump_n) {
+        ++dc.feedback_steps;
+        dc.max_feedback_step = std::max(dc.max_feedback_step, fb_step);
+      }
+      prev_feedback = last;
+      Vec3 f = renderer.render(t, last_new_s >= 0 ? t - last_new_s : 1e9, last);
       ++dc.ticks;
       if (!f.allFinite()) {
         ++dc.nonfinite;
@@ -555,9 +565,10 @@ int main(int argc, char** argv) {
               roles[1].kills, roles[2].kills, static_cast<long long>(sent_garbage), static_cast<long long>(sent_cut),
               static_cast<long long>(sent_stale), static_cast<long long>(sent_replayed), static_cast<long long>(log_events));
   std::printf("device: %lld ticks of 1 ms, %lld feedbacks read, %lld ticks with a force (max |f| %.3f N), %lld drops "
-              "to zero (allowed)\n",
+              "to zero (allowed); %lld FEEDBACK steps > %.3g N before the device's rate limit (max %.3g N)\n",
               static_cast<long long>(dc.ticks), static_cast<long long>(dc.feedbacks), static_cast<long long>(dc.nonzero_ticks),
-              dc.max_f, static_cast<long long>(dc.drops_to_zero));
+              dc.max_f, static_cast<long long>(dc.drops_to_zero), static_cast<long long>(dc.feedback_steps), jump_n,
+              dc.max_feedback_step);
   std::printf("%s", replay_out.c_str());
   struct Row {
     const char* what;

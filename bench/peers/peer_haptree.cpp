@@ -8,8 +8,11 @@ namespace {
 
 class HaptreeEngine final : public PeerEngine {
  public:
-  explicit HaptreeEngine(const Model& m) : model_(m), data_(m) {}
-  std::string name() const override { return "haptree"; }
+  // threads: set_dca_threads (1 = serial; 0 = automatic, "haptree_auto").
+  HaptreeEngine(const Model& m, int threads) : model_(m), data_(m), threads_(threads) {
+    set_dca_threads(m, data_, threads);
+  }
+  std::string name() const override { return threads_ == 1 ? "haptree" : "haptree_auto"; }
   std::string timed_call() const override {
     return "haptree::forward_dynamics (kinematics + DCA bottom-up + top-down)";
   }
@@ -19,12 +22,16 @@ class HaptreeEngine final : public PeerEngine {
  private:
   const Model& model_;
   Data data_;
+  int threads_;
 };
 
 }  // namespace
 
 std::unique_ptr<PeerEngine> make_haptree_engine(const Model& model) {
-  return std::make_unique<HaptreeEngine>(model);
+  return std::make_unique<HaptreeEngine>(model, 1);
+}
+std::unique_ptr<PeerEngine> make_haptree_auto_engine(const Model& model) {
+  return std::make_unique<HaptreeEngine>(model, 0);
 }
 
 std::vector<std::string> compiled_peers() {
