@@ -148,11 +148,11 @@ TEST(Bus, SchemaMismatchIsCountedWithThePeerVersion) {
   auto& sub = bus.subscribe<lcmt_feedback>("F", [](const lcmt_feedback&, const std::string&) {});
   lcmt_feedback f{};
   stamp(f, 7);
-  f.schema_version = 3;
+  f.schema_version = lcmt_feedback::SCHEMA_VERSION + 1;   // a newer peer
   ASSERT_EQ(bus.publish("F", f), 0);
   ASSERT_TRUE(handle_until(bus, [&] { return sub.stats().received.load() == 1; }));
   EXPECT_EQ(sub.stats().schema_rejects.load(), 1);
-  EXPECT_EQ(sub.stats().last_peer_schema.load(), 3);
+  EXPECT_EQ(sub.stats().last_peer_schema.load(), lcmt_feedback::SCHEMA_VERSION + 1);
   EXPECT_EQ(sub.stats().accepted.load(), 0);
 }
 
