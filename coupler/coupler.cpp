@@ -101,12 +101,6 @@ void from_settings(const lcmt_coupler_settings& m, CouplerOptions& o) {
   o.shm = m.shm;
 }
 
-static int64_t random_instance_id() {
-  std::random_device rd;
-  const uint64_t v = (static_cast<uint64_t>(rd()) << 32) ^ rd() ^ static_cast<uint64_t>(Clock::now().time_since_epoch().count());
-  return static_cast<int64_t>(v == 0 ? 1 : v);
-}
-
 static WatchdogParams watchdog_params(const CouplerOptions& o) {
   WatchdogParams w;
   w.stale_after_s = o.stale_after_s;
@@ -158,7 +152,9 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
   }
   bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_);
   ch_settings_ = bus::channel::coupler_settings(opt_.user, opt_.channel_suffix);
-  to_settings(opt_, random_instance_id(), settings_msg_);
+  // Stamped with the FEEDBACK's instance id: a replay takes each FEEDBACK's settings from its own coupler,
+  // not from whichever settings message came last (a replayed one of another coupler, chaos_soak).
+  to_settings(opt_, instance_id_, settings_msg_);
   spdlog::info(
       "coupler {}: device {}, k_s {} b_s {}, mapping: scene = {} x device_m + [{} {} {}], force_n = {} x scene "
       "force, clamp {} N, {} Hz, link {}",

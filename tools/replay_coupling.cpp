@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <deque>
 #include <map>
+#include <unordered_set>
 #include <memory>
 #include <vector>
 
@@ -54,6 +55,12 @@ int main(int argc, char** argv) {
   app.footer("The coupler's settings (gains, mapping, clamp) are read from the log's HAPTREE_COUPLER_SETTINGS_<user> "
              "messages (the newest one before each FEEDBACK); an option given here overrides the logged value. "
              "Logs without settings messages need every option of the session.");
+  int show = 0;
+  app.add_option("--show", show, "print the first N deviating and the first N missing FEEDBACK messages with "
+                 "what they name (diagnosis)")->capture_default_str();
+  bool recompute_copies = false;
+  app.add_flag("--recompute-copies", recompute_copies, "recompute copies of an earlier FEEDBACK too (diagnosis: their "
+               "inputs may no longer be kept, counted as missing)");
   std::string key_file;
   app.add_option("--session-key-file", key_file, "key of a keyed session: events are verified and their "
                  "authentication trailers stripped (docs/sessions.md)")->envname("HAPTREE_SESSION_KEY_FILE");
@@ -73,6 +80,7 @@ int main(int argc, char** argv) {
   int64_t in_window = 0, undecodable = 0;
   // Calls fn(channel, data, len) for each authentic event of the window, in log order. false: no log.
   bool empty_log = false;
+  int64_t log_t0 = 0;
   auto for_each_event = [&](auto&& fn) {
     lcm::LogFile file(log, "r");
     if (!file.good()) return false;
@@ -82,6 +90,7 @@ int main(int argc, char** argv) {
       return true;
     }
     const int64_t t0 = ev->timestamp;
+    log_t0 = t0;
     const int64_t t_begin = t0 + static_cast<int64_t>(std::llround(start_s * 1e6));
     const int64_t t_end = end_s < 0 ? INT64_MAX : t0 + static_cast<int64_t>(std::llround(end_s * 1e6));
     if (start_s > 0) {
@@ -98,14 +107,14 @@ int main(int argc, char** argv) {
         ++unauthentic;
         continue;
       }
-      fn(ev->channel, ev->data, len);
+      fn(ev->channel, ev->data, len, ev->timestamp);
     }
     return true;
   };
   // Pass 1: the coupler's settings (they name the device, and a logger that started late has FEEDBACK
   // before the first of them).
   std::vector<haptree::lcmt_coupler_settings> settings;
-  const bool opened = for_each_event([&](const std::string& channel, const void* data, size_t len) {
+  const bool opened = for_each_event([&](const std::string& channel, const void* data, size_t len, int64_t) {
     if (channel != c_settings) return;
     haptree::lcmt_coupler_settings m;
     if (haptree::bus::decode_checked(data, len, m) == haptree::bus::DecodeResult::kOk) settings.push_back(m);
@@ -129,14 +138,15 @@ int main(int argc, char** argv) {
     std::printf("replay_coupling: no %s messages in the log: using the options given\n", c_settings.c_str());
   }
   const std::string c_state = ch::device_state(o.device, suffix), c_fb = ch::feedback(o.device, suffix);
-  // Options for the FEEDBACK messages logged while settings[i] was the newest (a logger that started late:
-  // the first settings message also stands for the FEEDBACK before it).
+  // Options for a FEEDBACK: those its coupler instance published (a coupler stamps its settings with the
+  // instance id of its FEEDBACK), else those of settings[i], the newest logged before it (a logger that
+  // started late: the first settings message also stands for the FEEDBACK before it).
   const haptree::Vec3 offset_opt(offset[0], offset[1], offset[2]);
-  auto options_for = [&](int i) {
+  auto options_for = [&](int i, const haptree::lcmt_coupler_settings* own) {
     haptree::CouplerOptions r = o;
     r.offset = offset_opt;
     if (settings.empty()) return r;
-    haptree::from_settings(settings[static_cast<size_t>(std::max(0, i))], r);
+    haptree::from_settings(own ? *own : settings[std::min(static_cast<size_t>(std::max(0, i)), settings.size() - 1)], r);
     r.user = o.user;
     r.device = o.device;
     if (overrides[0]->count()) r.stiffness = o.stiffness;
@@ -177,12 +187,23 @@ int main(int argc, char** argv) {
     }
   };
   haptree::CouplingWorkspace ws(o.max_nodes, o.max_slots);
-  int64_t feedback_count = 0, compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0;
+  int64_t feedback_count = 0, compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0, copies = 0, deviating = 0;
+  constexpr size_t kKeepFeedback = 1 << 18;   // ~30 MB of FEEDBACK bodies; a copy older than that is recomputed
+  std::unordered_set<std::string> seen_feedback;
+  std::deque<std::string> feedback_order;
   int settings_seen = 0;
+  std::map<int64_t, haptree::lcmt_coupler_settings> settings_of;   // newest settings of each coupler instance
   double max_dev = 0;
-  for_each_event([&](const std::string& channel, const void* data, size_t len) {
+  for_each_event([&](const std::string& channel, const void* data, size_t len, int64_t t_log) {
     if (channel == c_settings) {
+      // Only the messages pass 1 kept count: a garbage or cut one on this channel (chaos_soak) used to shift
+      // every later FEEDBACK onto a later settings message, and past the last one (out of range).
+      haptree::lcmt_coupler_settings m;
+      if (haptree::bus::decode_checked(data, len, m) != haptree::bus::DecodeResult::kOk) return;
       ++settings_seen;
+      // A stale copy (another instance id, chaos_soak) adds an entry no FEEDBACK names; bounded.
+      if (settings_of.size() > 4096) settings_of.clear();
+      settings_of[m.instance_id] = m;
     } else if (channel == c_snap) {
       haptree::lcmt_coupling_snapshot m;
       if (haptree::bus::decode_checked(data, len, m) != haptree::bus::DecodeResult::kOk) {
@@ -208,6 +229,33 @@ int main(int argc, char** argv) {
         return;
       }
       ++feedback_count;
+      // A copy: the bytes after the header (type hash, schema, utime, instance id: 28 bytes) equal those of an
+      // earlier FEEDBACK. A replayed or stale message (chaos_soak) names the same inputs and carries the same
+      // force as the original, so it has the original's verdict; it is not recomputed (its inputs may have
+      // been logged long before, beyond what is kept).
+      constexpr size_t kHeader = 28;
+      std::string body(static_cast<const char*>(data) + kHeader, len - kHeader);
+      const bool copy = seen_feedback.count(body) > 0;
+      if (copy) {
+        ++copies;
+        if (!recompute_copies) return;
+      } else {
+        seen_feedback.insert(body);
+        feedback_order.push_back(std::move(body));
+        if (feedback_order.size() > kKeepFeedback) {
+          seen_feedback.erase(feedback_order.front());
+          feedback_order.pop_front();
+        }
+      }
+      auto describe = [&](const char* what, const std::string& extra) {
+        std::printf("  %s: t %.3f s (stamped %.3f s before it was logged), coupler %016llx seq %lld, snapshot "
+                    "%016llx v%lld, device %016llx seq %lld, flags %d, logged [%.6g %.6g %.6g] N%s\n",
+                    what, 1e-6 * static_cast<double>(t_log - log_t0), 1e-6 * static_cast<double>(t_log - f.utime),
+                    static_cast<unsigned long long>(f.instance_id), static_cast<long long>(f.seq),
+                    static_cast<unsigned long long>(f.snapshot_instance_id), static_cast<long long>(f.snapshot_version),
+                    static_cast<unsigned long long>(f.echo_device_instance_id), static_cast<long long>(f.echo_device_seq),
+                    f.flags, f.force_n[0], f.force_n[1], f.force_n[2], (extra + (copy ? " (a copy)" : "")).c_str());
+      };
       if (f.snapshot_version < 0) {
         ++no_snapshot;
         return;
@@ -216,11 +264,17 @@ int main(int argc, char** argv) {
         ++skipped_watchdog;
         return;
       }
-      const haptree::CouplerOptions so = options_for(settings_seen - 1);
+      const auto own = settings_of.find(f.instance_id);
+      const haptree::CouplerOptions so = options_for(settings_seen - 1, own == settings_of.end() ? nullptr : &own->second);
       auto s = snaps.find({f.snapshot_instance_id, f.snapshot_version});
       auto p = states.find({f.echo_device_instance_id, f.echo_device_seq});
       if (s == snaps.end() || p == states.end()) {
-        ++missing;
+        if (missing++ < show)
+          describe("missing", std::string(s == snaps.end() ? " [no snapshot" : " [") +
+                                  (s == snaps.end() && p == states.end() ? ", " : "") +
+                                  (p == states.end() ? "no device state]" : "]") +
+                                  (snaps.count({0, f.snapshot_version}) ? " (that version of another instance: kept)" : "") +
+                                  (states.count({0, f.echo_device_seq}) ? " (that seq of another instance: kept)" : ""));
         return;
       }
       haptree::CouplingInputs in;
@@ -234,17 +288,27 @@ int main(int argc, char** argv) {
         force_n.setZero();
       force_n = haptree::clamp_norm(haptree::finite_or_zero(force_n), so.max_force_n);
       const haptree::Vec3 logged(f.force_n[0], f.force_n[1], f.force_n[2]);
-      max_dev = std::max(max_dev, (force_n - logged).cwiseAbs().maxCoeff());
+      const double dev = (force_n - logged).cwiseAbs().maxCoeff();
+      if (dev > tolerance && deviating++ < show)
+        describe("deviation", fmt::format(", replayed [{:.6g} {:.6g} {:.6g}] N (device state stamped {:.3f} s before, "
+                                          "snapshot at sim time {:.6g}; settings: {}, message {} of {} decoded, k_s {:g} b_s {:g} clamp {:g})",
+                                          force_n[0], force_n[1], force_n[2],
+                                          1e-6 * static_cast<double>(f.utime - p->second.utime), s->second.sim_time,
+                                          own == settings_of.end() ? "the newest" : "its coupler's", settings_seen,
+                                          settings.size(), so.stiffness, so.damping, so.max_force_n));
+      max_dev = std::max(max_dev, dev);
       ++compared;
     }
   });
   if (start_s > 0 || end_s >= 0)
     std::printf("replay_coupling: window [%g, %s) s: %lld events\n", start_s,
                 end_s < 0 ? "end" : fmt::format("{:g}", end_s).c_str(), static_cast<long long>(in_window));
-  std::printf("replay_coupling: %lld feedback messages, %lld compared, max deviation %.3e N "
-              "(skipped: %lld watchdog ramp, %lld without snapshot, %lld missing snapshot/pose; %lld undecodable)\n",
-              static_cast<long long>(feedback_count), static_cast<long long>(compared), max_dev, static_cast<long long>(skipped_watchdog),
-              static_cast<long long>(no_snapshot), static_cast<long long>(missing),
+  std::printf("replay_coupling: %lld feedback messages, %lld compared, max deviation %.3e N, %lld deviating "
+              "(skipped: %lld watchdog ramp, %lld without snapshot, %lld missing snapshot/pose, %lld copies of an "
+              "earlier FEEDBACK; %lld undecodable)\n",
+              static_cast<long long>(feedback_count), static_cast<long long>(compared), max_dev,
+              static_cast<long long>(deviating), static_cast<long long>(skipped_watchdog),
+              static_cast<long long>(no_snapshot), static_cast<long long>(missing), static_cast<long long>(copies),
               static_cast<long long>(undecodable));
   if (auth)
     std::printf("replay_coupling: session key %s: %lld events rejected (no trailer, other key, bad MAC)\n",
