@@ -188,7 +188,7 @@ int main(int argc, char** argv) {
   };
   haptree::CouplingWorkspace ws(o.max_nodes, o.max_slots);
   int64_t feedback_count = 0, compared = 0, skipped_watchdog = 0, missing = 0, no_snapshot = 0, copies = 0, deviating = 0;
-  constexpr size_t kKeepFeedback = 1 << 18;   // ~30 MB of FEEDBACK bodies; a copy older than that is recomputed
+  constexpr size_t kKeepFeedback = 1 << 18;   // <= ~40 MB of FEEDBACK bodies; a copy older than that is recomputed
   std::unordered_set<std::string> seen_feedback;
   std::deque<std::string> feedback_order;
   int settings_seen = 0;
