@@ -470,6 +470,70 @@ int leaf_form_side(const Model& m, const Data& d, int node) {
   return 0;
 }
 
+// Fixed-size matrix types for the kernel (Dynamic: at most 6, the general joint).
+template <int R, int C>
+using KMat = Eigen::Matrix<double, R, C,
+                           (R == 1 && C != 1) ? Eigen::RowMajor : Eigen::ColMajor,
+                           R == Eigen::Dynamic ? 6 : R, C == Eigen::Dynamic ? 6 : C>;
+
+// The leaf-form kernel for nJ = NJ, nc = NC (Eigen::Dynamic for both: any joint). Writes R, Y, F
+// and the bias terms f_J0 and a_L0 (no handle forces). Fixed sizes for the revolute/prismatic case
+// are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x (benchmarks_dca.md).
+template <int NJ, int NC>
+void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointMat& Sd,
+                      const JointMat& Td, const KMat<NJ, 1>& taup, const Vec6& bO, const Vec6& cp,
+                      Mat6& R, Mat6& Y, Mat6& F, Vec6& fJ0, Vec6& aL0) {
+  const int nJ = static_cast<int>(Sd.cols()), nc = static_cast<int>(Td.cols());
+  const KMat<6, NJ> S = Sd;
+  const KMat<6, NC> T = Td;
+  const KMat<6, NC> KT = K * T;
+  const KMat<6, NJ> KS = K * S;
+  const KMat<NC, NC> B = T.transpose() * Bh * T;
+  const KMat<NC, NC> Ktt = T.transpose() * KT;
+  const KMat<NJ, NC> Kst = S.transpose() * KT;
+  const KMat<NJ, NJ> Kss = S.transpose() * KS;
+  const Eigen::PartialPivLU<KMat<NC, NC>> lu(KMat<NC, NC>(KMat<NC, NC>::Identity(nc, nc) + Ktt * B));
+  const KMat<NC, NC> E = lu.inverse();
+  KMat<NC, NC> G = B * E;
+  G = 0.5 * (G + G.transpose());
+  const KMat<NJ, NC> KstH = Kst * E.transpose();
+  KMat<NJ, NJ> N = Kss - Kst * G * Kst.transpose();
+  N = 0.5 * (N + N.transpose());
+  const Eigen::LLT<KMat<NJ, NJ>> llt(N);
+  const KMat<6, NC> TG = T * G;
+  // V = Sᵀ − K_st G Tᵀ (nJ × 6), N⁻¹V, and the pieces of R, Y, F.
+  const KMat<NJ, 6> V = KMat<NJ, 6>(S.transpose()) - Kst * TG.transpose();
+  KMat<NJ, 6> NiV(nJ, 6);
+  KMat<NJ, NC> NiKstH(nJ, nc);
+  if (nJ > 0) {
+    NiV = llt.solve(V);
+    NiKstH = llt.solve(KstH);
+  }
+  R.noalias() = TG * T.transpose();
+  if (nJ > 0) R.noalias() += V.transpose() * NiV;
+  R = 0.5 * (R + R.transpose());
+  const KMat<NC, NC> Ey = E * (Ktt - Kst.transpose() * NiKstH);
+  const KMat<6, NC> TEy = T * Ey;
+  Y.noalias() = TEy * T.transpose();
+  Y = 0.5 * (Y + Y.transpose());
+  const KMat<6, NC> TE = T * E;
+  F.noalias() = -(TE * T.transpose());
+  if (nJ > 0) F.noalias() += TE * (Kst.transpose() * NiV);
+  // Bias (no handle forces): g0, α0, λ0, f_J0 and L's acceleration at r_J.
+  const KMat<NC, 1> g0 = T.transpose() * (bO + cp - Bh * (S * taup));
+  KMat<NJ, 1> alpha0(nJ);
+  if (nJ > 0) alpha0 = llt.solve(KMat<NJ, 1>(V * p + taup - KstH * g0));
+  KMat<NC, 1> lam_rhs = Ktt * g0 - T.transpose() * p;
+  if (nJ > 0) lam_rhs.noalias() += Kst.transpose() * alpha0;
+  const KMat<NC, 1> lam0 = E * lam_rhs;
+  fJ0.noalias() = T * lam0;
+  aL0.noalias() = T * KMat<NC, 1>(g0 - B * lam0);
+  if (nJ > 0) {
+    fJ0.noalias() += S * taup;
+    aL0.noalias() += S * alpha0;
+  }
+}
+
 void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen::VectorXd& tau) {
   const auto& t = m.tree;
   const LeafSides ls = leaf_sides(m, node, side);
@@ -477,51 +541,23 @@ void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen
   const int hL = t.handle_num[ls.L], hO = t.handle_num[ls.O], hC = t.handle_num[node];
   JointMat S, T, Dj;
   joint_subspaces(m, d, J, S, T, Dj);
-  const int nJ = static_cast<int>(S.cols()), nc = static_cast<int>(T.cols());
+  const int nJ = static_cast<int>(S.cols());
   Mat6 K;
   Vec6 p;
   leaf_inertia_at_joint(d, ls.b, J, K, p);
   const Mat6 Bh = d.Phi(ls.O, hO, ls.sO, ls.sO);
-  const DynVec taup = nJ > 0 ? DynVec(ls.sigma * tau.segment(m.v_adr[J], nJ)) : DynVec(0);
   const Vec6 cp = ls.sigma * d.c[J];
-
-  const JointMat KT = K * T, KS = K * S;
-  const DynMat B = T.transpose() * Bh * T;
-  const DynMat Ktt = T.transpose() * KT, Kst = S.transpose() * KT, Kss = S.transpose() * KS;
-  const Eigen::PartialPivLU<DynMat> lu(DynMat(DynMat::Identity(nc, nc) + Ktt * B));
-  const DynMat E = lu.inverse();
-  DynMat G = B * E;
-  G = 0.5 * (G + G.transpose());
-  const DynMat KstH = Kst * E.transpose();
-  DynMat N = Kss - Kst * G * Kst.transpose();
-  N = 0.5 * (N + N.transpose());
-  const Eigen::LLT<DynMat> llt(N);
-  const JointMat TG = T * G;
-  // V = Sᵀ − K_st G Tᵀ (nJ × 6), Ni V, and the pieces of R, Y, F.
-  const DynMat V = DynMat(S.transpose()) - Kst * TG.transpose();
-  const DynMat NiV = nJ > 0 ? DynMat(llt.solve(V)) : DynMat(0, 6);
-  const DynMat NiKstH = nJ > 0 ? DynMat(llt.solve(KstH)) : DynMat(0, nc);
-  Mat6 R = TG * T.transpose();
-  if (nJ > 0) R.noalias() += V.transpose() * NiV;
-  R = 0.5 * (R + R.transpose());
-  const DynMat Ey = E * (Ktt - Kst.transpose() * NiKstH);
-  Mat6 Y = T * Ey * T.transpose();
-  Y = 0.5 * (Y + Y.transpose());
+  const Vec6 bO = d.b(ls.O, ls.sO);
+  Mat6 R, Y;
   Mat6& F = d.leaf_F[d.leaf_adr[node]];
-  F = -(T * (E * T.transpose()));
-  if (nJ > 0) F.noalias() += T * (E * (Kst.transpose() * NiV));
-  // Bias (no handle forces): g0, α0, λ0, f_J0 and L's acceleration at r_J.
-  const DynVec g0 = T.transpose() * (Vec6(d.b(ls.O, ls.sO)) + cp - Bh * (S * taup));
-  DynVec alpha0(nJ);
-  if (nJ > 0) alpha0 = llt.solve(DynVec(V * p + taup - KstH * g0));
-  DynVec lam_rhs = Ktt * g0 - T.transpose() * p;
-  if (nJ > 0) lam_rhs.noalias() += Kst.transpose() * alpha0;
-  const DynVec lam0 = E * lam_rhs;
-  Vec6 fJ0 = T * lam0;
-  Vec6 aL0 = T * DynVec(g0 - B * lam0);
-  if (nJ > 0) {
-    fJ0.noalias() += S * taup;
-    aL0.noalias() += S * alpha0;
+  Vec6 fJ0, aL0;
+  if (nJ == 1) {
+    const KMat<1, 1> taup(ls.sigma * tau(m.v_adr[J]));
+    leaf_form_kernel<1, 5>(K, p, Bh, S, T, taup, bO, cp, R, Y, F, fJ0, aL0);
+  } else {
+    const DynVec taup = nJ > 0 ? DynVec(ls.sigma * tau.segment(m.v_adr[J], nJ)) : DynVec(0);
+    leaf_form_kernel<Eigen::Dynamic, Eigen::Dynamic>(K, p, Bh, S, T, taup, bO, cp, R, Y, F, fJ0,
+                                                     aL0);
   }
   d.W[node] = Y;   // = T (Tᵀ Φ̂ T)⁻¹ Tᵀ: coupling and metric readers keep f_c = W(s_P − s_Q) + β
   d.beta[node] = ls.sigma * fJ0;
@@ -609,9 +645,13 @@ void leaf_form_top_down(const Model& m, Data& d, int node, int side) {
     leaf_inertia_at_joint(d, ls.b, J, K, p);
     const Vec6 aO = sO + d.b(ls.O, ls.sO) - d.Phi(ls.O, hO, ls.sO, ls.sO) * fJ;
     const JointMat KS = K * S;
-    const JointSq Kss = S.transpose() * KS;
     const JointVec rhs = S.transpose() * (fJ + fL + p) - KS.transpose() * (aO + ls.sigma * d.c[J]);
-    d.qdd.segment(m.v_adr[J], nJ) = ls.sigma * Eigen::LLT<JointSq>(Kss).solve(rhs);
+    if (nJ == 1) {   // K_ss is the scalar S·K S
+      d.qdd(m.v_adr[J]) = ls.sigma * rhs(0) / S.col(0).dot(KS.col(0));
+    } else {
+      const JointSq Kss = S.transpose() * KS;
+      d.qdd.segment(m.v_adr[J], nJ) = ls.sigma * Eigen::LLT<JointSq>(Kss).solve(rhs);
+    }
   }
 }
 
