@@ -385,15 +385,20 @@ inline __m256d fnmadd(__m256d a, __m256d b, __m256d c) {   // c − a·b
 }
 inline __m256d inv_sqrt(__m256d r2) {
 #ifdef __AVX512VL__
-  __m256d y = _mm256_rsqrt14_pd(r2);
-  constexpr int kSteps = 2;
+  // rsqrt14 (|e₀| < 2⁻¹⁴), then one refinement of order 4: with ε = 1 − r²y₀² (|ε| < 1.3e-4),
+  // 1/√r² = y₀(1 − ε)^(−1/2) = y₀(1 + ε/2 + 3ε²/8 + 5ε³/16 + 35ε⁴/128 …): the ε⁴ term left out is
+  // < 1e-16 relative.
+  const __m256d y = _mm256_rsqrt14_pd(r2);
+  const __m256d eps = fnmadd(_mm256_mul_pd(r2, y), y, _mm256_set1_pd(1.0));
+  const __m256d p = fmadd(fmadd(_mm256_set1_pd(0.3125), eps, _mm256_set1_pd(0.375)), eps, _mm256_set1_pd(0.5));
+  return fmadd(_mm256_mul_pd(y, eps), p, y);
 #else
+  // SSE rsqrt (|e₀| ≤ 1.5·2⁻¹²), three Newton steps y ← y(1.5 − 0.5r²y²): e ↦ ≤ 1.5e² + rounding.
   __m256d y = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(r2)));
-  constexpr int kSteps = 3;
-#endif
   const __m256d h = _mm256_mul_pd(_mm256_set1_pd(0.5), r2), c15 = _mm256_set1_pd(1.5);
-  for (int k = 0; k < kSteps; ++k) y = _mm256_mul_pd(y, fnmadd(h, _mm256_mul_pd(y, y), c15));
+  for (int k = 0; k < 3; ++k) y = _mm256_mul_pd(y, fnmadd(h, _mm256_mul_pd(y, y), c15));
   return y;
+#endif
 }
 struct LaneMasks {
   alignas(32) std::int64_t m[16][4];
@@ -421,10 +426,13 @@ void Evaluator::cluster_rows(const int* crow, const int* cent, double& ec_out, d
 #ifdef __AVX__
   const __m256d one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
   const __m256d far = _mm256_set1_pd((o_.r_off + 1.0) * (o_.r_off + 1.0));
-  const __m256d v_on = _mm256_set1_pd(r_on), v_iw = _mm256_set1_pd(inv_w);
-  const __m256d c2 = _mm256_set1_pd(-2.0), c6 = _mm256_set1_pd(6.0), c10 = _mm256_set1_pd(10.0);
-  const __m256d c12 = _mm256_set1_pd(-12.0), c15 = _mm256_set1_pd(15.0), c30 = _mm256_set1_pd(30.0);
-  const __m256d c60 = _mm256_set1_pd(60.0);
+  const __m256d v_iw = _mm256_set1_pd(inv_w);
+  // Switch in Horner form: S = 1 + x³(−10 + x(15 − 6x)), dS/dr = x²(−30 + x(60 − 30x))/w; at x = 1
+  // both are exactly 0 (all steps exact: integers, and 60/w = 2·(30/w)).
+  const __m256d c6 = _mm256_set1_pd(6.0), c12 = _mm256_set1_pd(-12.0), c2 = _mm256_set1_pd(-2.0);
+  const __m256d s6n = _mm256_set1_pd(-6.0), s15 = _mm256_set1_pd(15.0), s10n = _mm256_set1_pd(-10.0);
+  const __m256d d30 = _mm256_set1_pd(30.0 * inv_w), d60 = _mm256_set1_pd(2.0 * (30.0 * inv_w));
+  const __m256d x0 = _mm256_set1_pd(-r_on * inv_w);
   __m256d vec = zero, vel = zero;
   for (int s = 0; s < nslots_; ++s) {
     const int b = crow[s], e = crow[s + 1];
@@ -444,27 +452,20 @@ void Evaluator::cluster_rows(const int* crow, const int* cent, double& ec_out, d
       const __m256d inv_r2 = _mm256_mul_pd(inv_r, inv_r);
       const __m256d r = _mm256_mul_pd(r2, inv_r);
       const __m256d vq = _mm256_mul_pd(qi, _mm256_load_pd(Q + j));
-      __m256d Ec, dEc_r;   // E and (dE/dr)/r
-      if (DDD) {
-        Ec = _mm256_mul_pd(vq, inv_r2);
-        dEc_r = _mm256_mul_pd(_mm256_mul_pd(c2, Ec), inv_r2);
-      } else {
-        Ec = _mm256_mul_pd(vq, inv_r);
-        dEc_r = _mm256_mul_pd(_mm256_sub_pd(zero, Ec), inv_r2);
-      }
+      const __m256d Ec = DDD ? _mm256_mul_pd(vq, inv_r2) : _mm256_mul_pd(vq, inv_r);
       const __m256d vs = _mm256_add_pd(si, _mm256_load_pd(SG + j));
       const __m256d ve = _mm256_mul_pd(ei, _mm256_load_pd(E2 + j));
       const __m256d sr2 = _mm256_mul_pd(_mm256_mul_pd(vs, vs), inv_r2);
-      const __m256d s6 = _mm256_mul_pd(_mm256_mul_pd(sr2, sr2), sr2), s12 = _mm256_mul_pd(s6, s6);
-      const __m256d El = _mm256_mul_pd(ve, _mm256_sub_pd(s12, s6));
-      const __m256d dl = fmadd(c12, s12, _mm256_mul_pd(c6, s6));
-      const __m256d dE_r = fmadd(_mm256_mul_pd(ve, dl), inv_r2, dEc_r);
-      __m256d xs = _mm256_mul_pd(_mm256_sub_pd(r, v_on), v_iw);
-      xs = _mm256_min_pd(_mm256_max_pd(xs, zero), one);
+      const __m256d s6 = _mm256_mul_pd(_mm256_mul_pd(sr2, sr2), sr2);
+      const __m256d a6 = _mm256_mul_pd(ve, s6);                  // 4ε (σ/r)⁶
+      const __m256d El = fmadd(a6, s6, _mm256_sub_pd(zero, a6));   // 4ε((σ/r)¹² − (σ/r)⁶)
+      // (dE/dr)/r = (−2E_c [DDD] or −E_c, + 4ε(−12(σ/r)¹² + 6(σ/r)⁶)) / r²
+      const __m256d rdE = fmadd(DDD ? c2 : _mm256_set1_pd(-1.0), Ec, _mm256_mul_pd(a6, fmadd(c12, s6, c6)));
+      const __m256d dE_r = _mm256_mul_pd(rdE, inv_r2);
+      const __m256d xs = _mm256_min_pd(_mm256_max_pd(fmadd(r, v_iw, x0), zero), one);
       const __m256d x2 = _mm256_mul_pd(xs, xs), x3 = _mm256_mul_pd(x2, xs);
-      const __m256d x4 = _mm256_mul_pd(x3, xs), x5 = _mm256_mul_pd(x3, x2);
-      const __m256d S = fnmadd(c6, x5, fmadd(c15, x4, fnmadd(c10, x3, one)));
-      const __m256d dS = _mm256_mul_pd(fnmadd(c30, x4, fnmadd(c30, x2, _mm256_mul_pd(c60, x3))), v_iw);
+      const __m256d S = fmadd(x3, fmadd(fmadd(s6n, xs, s15), xs, s10n), one);
+      const __m256d dS = _mm256_mul_pd(x2, fmadd(fnmadd(d30, xs, d60), xs, _mm256_sub_pd(zero, d30)));
       const __m256d dE = fmadd(S, dE_r, _mm256_mul_pd(_mm256_mul_pd(dS, _mm256_add_pd(Ec, El)), inv_r));
       const __m256d fx = _mm256_mul_pd(dE, vx), fy = _mm256_mul_pd(dE, vy), fz = _mm256_mul_pd(dE, vz);
       fix = _mm256_sub_pd(fix, fx);   // f_i = −dE/dr · d/r, d = x_i − x_j
