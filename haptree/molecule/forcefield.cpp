@@ -200,12 +200,39 @@ Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::ve
   gkey_ = body_;
   p14_act_ = p14_;
   tors_act_ = tors_;
-  // Clusters of 4 consecutive atoms (topology order: bonded neighbours of one residue, within
-  // ≈ 0.25 nm of each other, so a cluster is compact); the last one padded.
-  nslots_ = (n_ + 3) & ~3;
-  slot_atom_.assign(nslots_, -1);
+  // Compact clusters of 4 (the fewer lanes an entry's mask leaves empty, the less arithmetic is
+  // wasted): walking the atoms in topology order, each atom not yet placed seeds a cluster and
+  // takes, one at a time, the unplaced atom among the next kWindow (same or adjacent residues)
+  // closest to the members so far (least sum of squared distances at x0).
+  {
+    constexpr int kWindow = 32;
+    std::vector<char> placed(n_, 0);
+    slot_atom_.clear();
+    slot_atom_.reserve(n_ + 3 * (n_ / 4 + 1));
+    for (int a = 0; a < n_; ++a) {
+      if (placed[a]) continue;
+      placed[a] = 1;
+      int mem[4] = {a, -1, -1, -1}, nm = 1;
+      for (; nm < 4; ++nm) {
+        int best = -1;
+        double bd = 0;
+        for (int b = a + 1; b < std::min(n_, a + kWindow); ++b) {
+          if (placed[b]) continue;
+          double d = 0;
+          for (int k = 0; k < nm; ++k) d += (x0[b] - x0[mem[k]]).squaredNorm();
+          if (best < 0 || d < bd) { best = b; bd = d; }
+        }
+        if (best < 0) break;
+        placed[best] = 1;
+        mem[nm] = best;
+      }
+      for (int k = 0; k < 4; ++k) slot_atom_.push_back(mem[k]);   // −1: padding
+    }
+  }
+  nslots_ = static_cast<int>(slot_atom_.size());
   atom_slot_.resize(n_);
-  for (int a = 0; a < n_; ++a) { slot_atom_[a] = a; atom_slot_[a] = a; }
+  for (int s = 0; s < nslots_; ++s)
+    if (slot_atom_[s] >= 0) atom_slot_[slot_atom_[s]] = s;
   for (DVec* v : {&cx_, &cy_, &cz_, &cq_, &cs_, &ce_, &cfx_, &cfy_, &cfz_}) v->assign(nslots_, 0.0);
   for (int s = 0; s < nslots_; ++s) {   // padding: zero parameters (and masked out anyway)
     const int a = slot_atom_[s];
@@ -638,10 +665,18 @@ void Evaluator::split_list(const std::vector<Vec3>& x) {
       if (ma) {
         pa += __builtin_popcount(ma);
         int near = 0;   // lanes within r_off + kPrune now
+#ifdef __AVX__
+        const __m256d vx = _mm256_sub_pd(_mm256_set1_pd(X[s]), _mm256_load_pd(X + j));
+        const __m256d vy = _mm256_sub_pd(_mm256_set1_pd(Y[s]), _mm256_load_pd(Y + j));
+        const __m256d vz = _mm256_sub_pd(_mm256_set1_pd(Z[s]), _mm256_load_pd(Z + j));
+        const __m256d r2 = fmadd(vz, vz, fmadd(vy, vy, _mm256_mul_pd(vx, vx)));
+        near = _mm256_movemask_pd(_mm256_cmp_pd(r2, _mm256_set1_pd(rp2), _CMP_LT_OQ));
+#else
         for (int l = 0; l < 4; ++l) {
           const double dx = X[s] - X[j + l], dy = Y[s] - Y[j + l], dz = Z[s] - Z[j + l];
           near |= (dx * dx + dy * dy + dz * dz < rp2) << l;
         }
+#endif
         if (ma & near) caent_[na++] = c << 4 | (ma & near);
       }
       if (mi) { cient_[ni++] = c << 4 | mi; pi += __builtin_popcount(mi); }
