@@ -84,7 +84,7 @@ class Evaluator {
   size_t pairs_evaluated() const { return last_evaluated_; }
   std::int64_t pairs_evaluated_total() const { return total_evaluated_; }
   // Kernel lanes (atom × 4-atom cluster entries × 4) in the last compute: the arithmetic actually
-  // done; pairs_evaluated() / kernel_lanes() is the cluster fill.
+  // done (pairs_evaluated() / kernel_lanes(): listed pairs per lane).
   size_t kernel_lanes() const { return last_lanes_; }
   // Exact pruning of the evaluated entries: a listed pair between groups at ≥ r_off + kPrune when
   // the entries were last split is still at ≥ r_off (switch exactly 0) until an atom has moved
@@ -144,7 +144,7 @@ class Evaluator {
   std::vector<char> gmark_;           // scratch (per body)
   // 1×4 cluster kernel: slot s = 4c + l (cluster c, lane l) holds atom slot_atom_[s] (−1: padding);
   // per slot, positions / parameters / forces as structure of arrays. The list as entries
-  // (c << 4 | lane mask) per i slot: i against the mask's atoms of cluster c (ALGORITHMS-style CSR).
+  // (c << 4 | lane mask) per i slot (CSR): atom i against the mask's atoms of cluster c.
   using DVec = std::vector<double, Eigen::aligned_allocator<double>>;
   int nslots_ = 0;
   std::vector<int> slot_atom_, atom_slot_, slot_gkey_;

@@ -248,10 +248,10 @@ TEST(ForceFieldMotion, GroupInsideMovingIsReformedAtOnce) {
 // The 1×4 cluster kernel (masked lanes, padding of the last cluster, rsqrt + Newton 1/r, pruning)
 // against the all-pairs reference, per atom (every atom its own body, so nothing is cached), for
 // both dielectrics and a switch other than the default (r_on, r_off move where the masked lanes'
-// "far" r² and the clamp land). Only summation order
-// differs (tolerance (a) above: ≈ 1e-13 of the force scale), so 1e-9 of max |F| still catches one
-// lost, doubled or mis-masked pair (≥ 1e-5 of it). ala20 and polyaniline: atom counts that are not
-// multiples of 4 are checked to exercise the padding.
+// "far" r² and the clamp land). Only summation order differs (tolerance (a) above: ≈ 1e-13 of
+// the force scale; 1/r is within 2 ulp), so 1e-9 of max |F| still catches one lost, doubled or
+// mis-masked pair (≥ 1e-5 of it). At least one scene has an atom count that is not a multiple of 4
+// (the last cluster padded; the greedy clusters may pad others too).
 TEST(ForceFieldMotion, ClusterKernelMatchesAllPairsPerAtom) {
   int padded = 0;
   for (const char* name : {"ala20", "polyaniline", "bacteriorhodopsin"}) {
