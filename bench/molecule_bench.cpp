@@ -42,8 +42,8 @@ struct Row {
   std::string scene, mode;
   int atoms = 0, dofs = 0, active = 0;
   double ff_ms = 0, step_ms = 0, ff_median = 0, step_median = 0, ff_cpu = 0, step_cpu = 0;
-  double ff_cpu_mean = 0, step_cpu_mean = 0, pairs_per_step = 0;
-  int rebuilds = 0, regroups = 0, selections = 0;
+  double ff_cpu_mean = 0, step_cpu_mean = 0, pairs_per_step = 0, lanes_per_step = 0;
+  int rebuilds = 0, regroups = 0, selections = 0, splits = 0;
   size_t pairs = 0;
   double e0 = 0, e1 = 0;
   bool finite = true;
@@ -69,8 +69,9 @@ Row run(mol::MolecularScene& sc, bool adaptive, bool follow, int budget, int ste
   row.dofs = m.nv;
   const int rebuild0 = sc.force_field->neighbour_rebuilds();
   const int regroup0 = sc.force_field->regroups();
+  const int split0 = sc.force_field->prunes();
   std::vector<double> tf, ts, cf, cs;
-  double pairs = 0;
+  double pairs = 0, lanes = 0;
   forward_kinematics(m, d, st.q);
   for (int s = 0; s < steps; ++s) {
     const auto t0 = Clock::now();
@@ -99,6 +100,7 @@ Row run(mol::MolecularScene& sc, bool adaptive, bool follow, int budget, int ste
       cf.push_back(f_cpu);
       cs.push_back(s_cpu);
       pairs += static_cast<double>(sc.force_field->pairs_evaluated());
+      lanes += static_cast<double>(sc.force_field->kernel_lanes());
     }
   }
   row.finite = st.q.allFinite() && std::isfinite(row.e1);
@@ -107,7 +109,9 @@ Row run(mol::MolecularScene& sc, bool adaptive, bool follow, int budget, int ste
   for (double x : cf) row.ff_cpu_mean += x / cf.size();
   for (double x : cs) row.step_cpu_mean += x / cs.size();
   row.pairs_per_step = pairs / cf.size();
+  row.lanes_per_step = lanes / cf.size();
   row.regroups = sc.force_field->regroups() - regroup0;
+  row.splits = sc.force_field->prunes() - split0;
   row.ff_median = median(tf);
   row.ff_cpu = median(cf);
   row.step_cpu = median(cs);
@@ -125,10 +129,13 @@ int main(int argc, char** argv) {
   int steps = 200, budget = 48;
   double dt_ps = 0.0005;
   bool ftz = false;
+  std::string modes = "full,all,follow";
   app.add_option("--scenes", scenes, "comma-separated scene names or PDB paths")->capture_default_str();
   app.add_option("--steps", steps, "steps per run (first 5 not timed)")->capture_default_str();
   app.add_option("--dt-ps", dt_ps, "time step in ps (0.0005 = 0.5 fs)")->capture_default_str();
   app.add_option("--budget", budget, "active DOF budget of the adaptive run")->capture_default_str();
+  app.add_option("--modes", modes, "runs: full (full DCA), all (adaptive, all pairs), follow (adaptive, follows motion)")
+      ->capture_default_str();
   app.add_flag("--ftz", ftz, "set flush-to-zero and denormals-are-zero (MXCSR) first: a subnormal check");
   CLI11_PARSE(app, argc, argv);
   if (ftz) {
@@ -140,20 +147,21 @@ int main(int argc, char** argv) {
   std::printf("command: %s\n\n", cmd.c_str());
   std::printf("| scene | atoms | DOF | mode | active DOF | thread CPU ms force field (mean / median) | "
               "thread CPU ms whole step (mean / median) | wall ms whole step (mean / median) | "
-              "pairs evaluated / step (mean) | list rebuilds | regroups | selections | E first → last (kJ/mol) |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+              "pairs evaluated / step (mean) | kernel lanes / step (mean) | list rebuilds | regroups | list splits (prunes) | selections | E first → last (kJ/mol) |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   std::stringstream ss(scenes);
   std::string name;
   while (std::getline(ss, name, ',')) {
     for (int mode = 0; mode < 3; ++mode) {
+      if (modes.find(mode == 0 ? "full" : mode == 1 ? "all" : "follow") == std::string::npos) continue;
       mol::SceneOptions so;
       so.nonbonded.follow_motion = mode == 2;
       mol::MolecularScene sc = mol::load_molecular_scene(name, so);   // fresh state per run
       const Row r = run(sc, mode > 0, mode == 2, budget, steps, dt_ps);
-      std::printf("| %s | %d | %d | %s | %d | %.3f / %.3f | %.3f / %.3f | %.3f / %.3f | %.0f | %d | %d | %d | %.1f → %.1f%s |\n",
+      std::printf("| %s | %d | %d | %s | %d | %.3f / %.3f | %.3f / %.3f | %.3f / %.3f | %.0f | %.0f | %d | %d | %d | %d | %.1f → %.1f%s |\n",
                   r.scene.c_str(), r.atoms, r.dofs, r.mode.c_str(), r.active, r.ff_cpu_mean, r.ff_cpu,
-                  r.step_cpu_mean, r.step_cpu, r.step_ms, r.step_median, r.pairs_per_step, r.rebuilds,
-                  r.regroups, r.selections, r.e0, r.e1, r.finite ? "" : " (NON-FINITE)");
+                  r.step_cpu_mean, r.step_cpu, r.step_ms, r.step_median, r.pairs_per_step, r.lanes_per_step, r.rebuilds,
+                  r.regroups, r.splits, r.selections, r.e0, r.e1, r.finite ? "" : " (NON-FINITE)");
       std::fflush(stdout);
     }
   }

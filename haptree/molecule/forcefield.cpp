@@ -200,13 +200,64 @@ Evaluator::Evaluator(const mol::Topology& t, std::vector<int> atom_body, std::ve
   gkey_ = body_;
   p14_act_ = p14_;
   tors_act_ = tors_;
+  // Compact clusters of 4 (the fewer lanes an entry's mask leaves empty, the less arithmetic is
+  // wasted): walking the atoms in topology order, each atom not yet placed seeds a cluster and
+  // takes, one at a time, the unplaced atom among the next kWindow (same or adjacent residues)
+  // closest to the members so far (least sum of squared distances at x0).
+  {
+    constexpr int kWindow = 32;
+    std::vector<char> placed(n_, 0);
+    slot_atom_.clear();
+    slot_atom_.reserve(n_ + 3 * (n_ / 4 + 1));
+    for (int a = 0; a < n_; ++a) {
+      if (placed[a]) continue;
+      placed[a] = 1;
+      int mem[4] = {a, -1, -1, -1}, nm = 1;
+      for (; nm < 4; ++nm) {
+        int best = -1;
+        double bd = 0;
+        for (int b = a + 1; b < std::min(n_, a + kWindow); ++b) {
+          if (placed[b]) continue;
+          double d = 0;
+          for (int k = 0; k < nm; ++k) d += (x0[b] - x0[mem[k]]).squaredNorm();
+          if (best < 0 || d < bd) { best = b; bd = d; }
+        }
+        if (best < 0) break;
+        placed[best] = 1;
+        mem[nm] = best;
+      }
+      for (int k = 0; k < 4; ++k) slot_atom_.push_back(mem[k]);   // −1: padding
+    }
+  }
+  nslots_ = static_cast<int>(slot_atom_.size());
+  atom_slot_.resize(n_);
+  for (int s = 0; s < nslots_; ++s)
+    if (slot_atom_[s] >= 0) atom_slot_[slot_atom_[s]] = s;
+  for (DVec* v : {&cx_, &cy_, &cz_, &cq_, &cs_, &ce_, &cfx_, &cfy_, &cfz_}) v->assign(nslots_, 0.0);
+  for (int s = 0; s < nslots_; ++s) {   // padding: zero parameters (and masked out anyway)
+    const int a = slot_atom_[s];
+    if (a < 0) continue;
+    cq_[s] = q_[a];
+    cs_[s] = hsig_[a];
+    ce_[s] = e2_[a];
+  }
+  slot_gkey_.assign(nslots_, -1);
+  crow_.assign(nslots_ + 1, 0);
+  carow_.assign(nslots_ + 1, 0);
+  cirow_.assign(nslots_ + 1, 0);
+  cstamp_.assign(nslots_ / 4, -1);
+  cpos_.assign(nslots_ / 4, 0);
+  x_prune_.assign(n_, Vec3::Zero());
   build_list(x0);
   const size_t cap = 2 * npairs_ + 1024;
-  if (pj_.size() < cap) pj_.resize(cap);
-  apj_.resize(pj_.size());
-  ipj_.resize(pj_.size());
-  arow_.assign(n_ + 1, 0);
-  irow_.assign(n_ + 1, 0);
+  if (pj_.size() < cap) {
+    pj_.resize(cap);
+    cent_.resize(cap);
+    caent_.resize(cap);
+    cient_.resize(cap);
+  }
+  split_list(x0);
+  prunes_ = 0;
   F_loc_.assign(n_, Vec3::Zero());
   cached_atoms_.reserve(n_);
   rebuilds_ = 0;
@@ -223,6 +274,7 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
     std::fill(row_.begin(), row_.end(), 0);
     npairs_ = 0;
     list_valid_ = false;
+    build_clusters();   // empty rows
     return;
   }
   const Vec3 ext = (hi - lo).cwiseMax(Vec3::Constant(1e-9));
@@ -278,8 +330,9 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
             if (std::binary_search(eb, ee, j)) continue;
             if (np == pj_.size()) {   // only beyond 2x the setup size
               pj_.resize(2 * np + 1024);
-              apj_.resize(pj_.size());
-              ipj_.resize(pj_.size());
+              cent_.resize(pj_.size());   // entries <= pairs
+              caent_.resize(pj_.size());
+              cient_.resize(pj_.size());
             }
             pj_[np] = j;
             ++np;
@@ -292,15 +345,50 @@ void Evaluator::build_list(const std::vector<Vec3>& x) {
   npairs_ = np;
   for (int a = 0; a < n_; ++a) x_ref_[a] = x[a];
   list_valid_ = true;
+  build_clusters();
 }
 
-// Switched non-bonded pairs of the CSR list, row by row in chunks of kChunk partners, three passes
-// per chunk so the arithmetic vectorises: (1) gather d = x_i − x_j and the pair parameters into
-// contiguous buffers, dropping partners at or beyond r_off; (2) branch-free kernel over the chunk:
-// the switch uses x clamped to [0, 1], so S = 1, dS = 0 exactly inside r_on; with AVX, 4 pairs per
-// instruction, F_i and the energies summed in 4 lanes (round-off-level reordering); (3) scalar
-// scatter of F_j. Without AVX the same kernel runs scalar (GCC does not vectorise std::sqrt unless
-// -fno-math-errno, hence the intrinsics).
+// Row of slot s (atom i): the partners of i merged by cluster, one entry (c << 4 | lane mask) per
+// cluster holding at least one; every listed pair is in exactly one entry's mask.
+void Evaluator::build_clusters() {
+  if (cent_.size() < pj_.size()) {   // the constructor's first build (later: sized with pj_)
+    cent_.resize(pj_.size());
+    caent_.resize(pj_.size());
+    cient_.resize(pj_.size());
+  }
+  std::fill(cstamp_.begin(), cstamp_.end(), -1);
+  size_t ne = 0;
+  for (int s = 0; s < nslots_; ++s) {
+    crow_[s] = static_cast<int>(ne);
+    const int i = slot_atom_[s];
+    if (i < 0 || !list_valid_) continue;
+    for (int p = row_[i]; p < row_[i + 1]; ++p) {
+      const int sj = atom_slot_[pj_[p]], c = sj >> 2;
+      if (cstamp_[c] != s) {
+        cstamp_[c] = s;
+        cpos_[c] = static_cast<int>(ne);
+        cent_[ne++] = c << 4;
+      }
+      cent_[cpos_[c]] |= 1 << (sj & 3);
+    }
+  }
+  crow_[nslots_] = static_cast<int>(ne);
+  nents_ = ne;
+  prune_valid_ = false;   // new entries: split again
+}
+
+// Switched non-bonded pairs, atom × 4-atom cluster ("1×4"; GROMACS' nbnxm cluster pairs with one
+// i atom, since this kernel is double precision): an entry evaluates atom i against the 4 slots of
+// one cluster with vector loads from the slot arrays (no per-pair gather or compaction) and vector
+// stores of the 4 j forces (no scatter). Lanes outside the entry's mask (pairs not listed, padding,
+// i itself) get r² = far, beyond r_off, where the switch is exactly 0 (x clamped to 1: S = 1 − 10 +
+// 15 − 6 = 0 and dS = 0 in exact arithmetic, even with FMA), so they add exact zeros; so do listed
+// pairs at or beyond r_off, as in the reference. 1/r is double precision from rsqrt + Newton steps
+// y ← y(1.5 − 0.5 r² y²), whose relative error e maps to ≤ 1.5e² (+ rounding): AVX-512VL rsqrt14
+// (|e₀| < 2⁻¹⁴) and two steps (5.6e-9, then 4.7e-17), else SSE's rsqrt (|e₀| ≤ 1.5·2⁻¹²) and three
+// (2.1e-7, 6.3e-14, 6e-27): the result is within the few ulp of rounding of 1/sqrt(r²), so nothing
+// is single precision. F_i and the energies are summed in 4 lanes (round-off-level reordering
+// against the reference). Without AVX the same lanes run scalar with sqrt and a division.
 #ifdef __AVX__
 namespace {
 inline double hsum(__m256d v) {
@@ -308,185 +396,210 @@ inline double hsum(__m256d v) {
   _mm256_store_pd(a, v);
   return (a[0] + a[1]) + (a[2] + a[3]);
 }
+inline __m256d fmadd(__m256d a, __m256d b, __m256d c) {   // a·b + c
+#ifdef __FMA__
+  return _mm256_fmadd_pd(a, b, c);
+#else
+  return _mm256_add_pd(_mm256_mul_pd(a, b), c);
+#endif
+}
+inline __m256d fnmadd(__m256d a, __m256d b, __m256d c) {   // c − a·b
+#ifdef __FMA__
+  return _mm256_fnmadd_pd(a, b, c);
+#else
+  return _mm256_sub_pd(c, _mm256_mul_pd(a, b));
+#endif
+}
+inline __m256d inv_sqrt(__m256d r2) {
+#ifdef __AVX512VL__
+  // rsqrt14 (|e₀| < 2⁻¹⁴), then one refinement of order 4: with ε = 1 − r²y₀² (|ε| < 1.3e-4),
+  // 1/√r² = y₀(1 − ε)^(−1/2) = y₀(1 + ε/2 + 3ε²/8 + 5ε³/16 + 35ε⁴/128 …): the ε⁴ term left out is
+  // < 1e-16 relative.
+  const __m256d y = _mm256_rsqrt14_pd(r2);
+  const __m256d eps = fnmadd(_mm256_mul_pd(r2, y), y, _mm256_set1_pd(1.0));
+  const __m256d p = fmadd(fmadd(_mm256_set1_pd(0.3125), eps, _mm256_set1_pd(0.375)), eps, _mm256_set1_pd(0.5));
+  return fmadd(_mm256_mul_pd(y, eps), p, y);
+#else
+  // SSE rsqrt (|e₀| ≤ 1.5·2⁻¹²), three Newton steps y ← y(1.5 − 0.5r²y²): e ↦ ≤ 1.5e² + rounding.
+  __m256d y = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(r2)));
+  const __m256d h = _mm256_mul_pd(_mm256_set1_pd(0.5), r2), c15 = _mm256_set1_pd(1.5);
+  for (int k = 0; k < 3; ++k) y = _mm256_mul_pd(y, fnmadd(h, _mm256_mul_pd(y, y), c15));
+  return y;
+#endif
+}
+struct LaneMasks {
+  alignas(32) std::int64_t m[16][4];
+};
+constexpr LaneMasks make_lane_masks() {
+  LaneMasks t{};
+  for (int k = 0; k < 16; ++k)
+    for (int l = 0; l < 4; ++l) t.m[k][l] = (k >> l & 1) ? -1 : 0;
+  return t;
+}
+constexpr LaneMasks kLanes = make_lane_masks();
+inline __m256d lane_mask(int m) {
+  return _mm256_castsi256_pd(_mm256_load_si256(reinterpret_cast<const __m256i*>(kLanes.m[m])));
+}
 }  // namespace
 #endif
 
 template <bool DDD>
-void Evaluator::nonbonded_rows(const int* row, const int* pj_list, const std::vector<Vec3>& x,
-                               std::vector<Vec3>& F, double& ec_out, double& el_out) const {
-  double ec = 0, el = 0;   // locals: accumulating through the references would go via memory
-#ifdef __AVX__
-  __m256d vec = _mm256_setzero_pd(), vel = _mm256_setzero_pd();
-#endif
-  constexpr int kChunk = 256;
-  alignas(64) double dx[kChunk], dy[kChunk], dz[kChunk], qq[kChunk], sg[kChunk], e4[kChunk];
-  alignas(64) double fr[kChunk];   // kChunk: a multiple of 4
-  alignas(64) int jj[kChunk];
-  const double roff2 = o_.r_off * o_.r_off;
-#ifndef __AVX__
-  alignas(64) double ecs[kChunk], els[kChunk];
-#endif
+void Evaluator::cluster_rows(const int* crow, const int* cent, double& ec_out, double& el_out) {
   const double r_on = o_.r_on, inv_w = 1.0 / (o_.r_off - o_.r_on);
   const double kq = DDD ? kCoulomb / 40.0 : kCoulomb;
-  const double* hs = hsig_.data();
-  const double* e2 = e2_.data();
-  const double* qa = q_.data();
-  for (int i = 0; i < n_; ++i) {
-    const int b = row[i], end = row[i + 1];
-    if (b == end) continue;
-    const Vec3 xi = x[i];
-    const double qi = kq * q_[i], si = hs[i], ei = e2[i];
-    Vec3 Fi = Vec3::Zero();
+  const double *X = cx_.data(), *Y = cy_.data(), *Z = cz_.data();
+  const double *Q = cq_.data(), *SG = cs_.data(), *E2 = ce_.data();
+  double *FX = cfx_.data(), *FY = cfy_.data(), *FZ = cfz_.data();
 #ifdef __AVX__
-    __m256d vfx = _mm256_setzero_pd(), vfy = _mm256_setzero_pd(), vfz = _mm256_setzero_pd();
-#endif
-    for (int c0 = b; c0 < end; c0 += kChunk) {
-      const int mc = std::min(kChunk, end - c0);
-      const int* pj = pj_list + c0;
-      // Gather, keeping only partners inside r_off (branch-free compaction: always write, advance
-      // when inside).
-      int m = 0;
-      for (int k = 0; k < mc; ++k) {
-        const int j = pj[k];
-        const Vec3& xj = x[j];
-        const double ddx = xi(0) - xj(0), ddy = xi(1) - xj(1), ddz = xi(2) - xj(2);
-        jj[m] = j;
-        dx[m] = ddx;
-        dy[m] = ddy;
-        dz[m] = ddz;
-        qq[m] = qi * qa[j];
-        sg[m] = si + hs[j];
-        e4[m] = ei * e2[j];
-        m += (ddx * ddx + ddy * ddy + ddz * ddz < roff2) ? 1 : 0;
-      }
-#ifdef __AVX__
-      // std::sqrt may set errno, so GCC keeps it scalar: the kernel is written with AVX intrinsics
-      // (same operations and order as the scalar branch below). Pad to a multiple of 4 with
-      // zero-parameter pairs at r = 1.
-      const int m4 = (m + 3) & ~3;
-      for (int k = m; k < m4; ++k) { dx[k] = 1; dy[k] = dz[k] = qq[k] = sg[k] = e4[k] = 0; }
-      const __m256d one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
-      const __m256d v_on = _mm256_set1_pd(r_on), v_iw = _mm256_set1_pd(inv_w);
-      for (int k = 0; k < m4; k += 4) {
-        const __m256d vx = _mm256_load_pd(dx + k), vy = _mm256_load_pd(dy + k), vz = _mm256_load_pd(dz + k);
-        const __m256d r2 = _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(vx, vx), _mm256_mul_pd(vy, vy)),
-                                         _mm256_mul_pd(vz, vz));
-        const __m256d inv_r2 = _mm256_div_pd(one, r2);
-        const __m256d r = _mm256_sqrt_pd(r2);
-        const __m256d inv_r = _mm256_mul_pd(r, inv_r2);
-        const __m256d vq = _mm256_load_pd(qq + k);
-        __m256d Ec, dEc_r;
-        if (DDD) {
-          Ec = _mm256_mul_pd(vq, inv_r2);
-          dEc_r = _mm256_mul_pd(_mm256_mul_pd(_mm256_set1_pd(-2.0), Ec), inv_r2);
-        } else {
-          Ec = _mm256_mul_pd(vq, inv_r);
-          dEc_r = _mm256_mul_pd(_mm256_sub_pd(zero, Ec), inv_r2);
-        }
-        const __m256d vs = _mm256_load_pd(sg + k), ve = _mm256_load_pd(e4 + k);
-        const __m256d sr2 = _mm256_mul_pd(_mm256_mul_pd(vs, vs), inv_r2);
-        const __m256d s6 = _mm256_mul_pd(_mm256_mul_pd(sr2, sr2), sr2), s12 = _mm256_mul_pd(s6, s6);
-        const __m256d El = _mm256_mul_pd(ve, _mm256_sub_pd(s12, s6));
-        const __m256d dl = _mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(-12.0), s12),
-                                         _mm256_mul_pd(_mm256_set1_pd(6.0), s6));
-        const __m256d dE_r = _mm256_add_pd(dEc_r, _mm256_mul_pd(_mm256_mul_pd(ve, dl), inv_r2));
-        __m256d xs = _mm256_mul_pd(_mm256_sub_pd(r, v_on), v_iw);
-        xs = _mm256_min_pd(_mm256_max_pd(xs, zero), one);
-        const __m256d x2 = _mm256_mul_pd(xs, xs), x3 = _mm256_mul_pd(x2, xs);
-        const __m256d x4 = _mm256_mul_pd(x3, xs), x5 = _mm256_mul_pd(x3, x2);
-        const __m256d S = _mm256_sub_pd(
-            _mm256_add_pd(_mm256_sub_pd(one, _mm256_mul_pd(_mm256_set1_pd(10.0), x3)),
-                          _mm256_mul_pd(_mm256_set1_pd(15.0), x4)),
-            _mm256_mul_pd(_mm256_set1_pd(6.0), x5));
-        const __m256d dS = _mm256_mul_pd(
-            _mm256_sub_pd(_mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(-30.0), x2),
-                                        _mm256_mul_pd(_mm256_set1_pd(60.0), x3)),
-                          _mm256_mul_pd(_mm256_set1_pd(30.0), x4)),
-            v_iw);
-        const __m256d dE = _mm256_add_pd(_mm256_mul_pd(S, dE_r),
-                                         _mm256_mul_pd(_mm256_mul_pd(dS, _mm256_add_pd(Ec, El)), inv_r));
-        const __m256d f = _mm256_sub_pd(zero, dE);
-        _mm256_store_pd(fr + k, f);
-        vfx = _mm256_add_pd(vfx, _mm256_mul_pd(f, vx));
-        vfy = _mm256_add_pd(vfy, _mm256_mul_pd(f, vy));
-        vfz = _mm256_add_pd(vfz, _mm256_mul_pd(f, vz));
-        vec = _mm256_add_pd(vec, _mm256_mul_pd(S, Ec));
-        vel = _mm256_add_pd(vel, _mm256_mul_pd(S, El));
-      }
-      for (int k = 0; k < m; ++k) {   // F_j −= f_ij (partners in one row are distinct)
-        Vec3& Fj = F[jj[k]];
-        Fj(0) -= fr[k] * dx[k];
-        Fj(1) -= fr[k] * dy[k];
-        Fj(2) -= fr[k] * dz[k];
-      }
+  const __m256d one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
+  const __m256d far = _mm256_set1_pd((o_.r_off + 1.0) * (o_.r_off + 1.0));
+  const __m256d v_iw = _mm256_set1_pd(inv_w);
+  // Switch in Horner form: S = 1 + x³(−10 + x(15 − 6x)), dS/dr = x²(−30 + x(60 − 30x))/w; at x = 1
+  // both are exactly 0 (all steps exact: integers, and 60/w = 2·(30/w)).
+  const __m256d c6 = _mm256_set1_pd(6.0), c12 = _mm256_set1_pd(-12.0), c2 = _mm256_set1_pd(-2.0);
+  const __m256d s6n = _mm256_set1_pd(-6.0), s15 = _mm256_set1_pd(15.0), s10n = _mm256_set1_pd(-10.0);
+  const __m256d d30 = _mm256_set1_pd(30.0 * inv_w), d60 = _mm256_set1_pd(2.0 * (30.0 * inv_w));
+  const __m256d x0 = _mm256_set1_pd(-r_on * inv_w);
+  __m256d vec = zero, vel = zero;
+  for (int s = 0; s < nslots_; ++s) {
+    const int b = crow[s], e = crow[s + 1];
+    if (b == e) continue;
+    const __m256d xi = _mm256_set1_pd(X[s]), yi = _mm256_set1_pd(Y[s]), zi = _mm256_set1_pd(Z[s]);
+    const __m256d qi = _mm256_set1_pd(kq * Q[s]), si = _mm256_set1_pd(SG[s]), ei = _mm256_set1_pd(E2[s]);
+    __m256d fix = zero, fiy = zero, fiz = zero;
+    for (int k = b; k < e; ++k) {
+      const int w = cent[k];
+      const int j = (w >> 4) << 2;
+      const __m256d vx = _mm256_sub_pd(xi, _mm256_load_pd(X + j));
+      const __m256d vy = _mm256_sub_pd(yi, _mm256_load_pd(Y + j));
+      const __m256d vz = _mm256_sub_pd(zi, _mm256_load_pd(Z + j));
+      const __m256d r2 = _mm256_blendv_pd(far, fmadd(vz, vz, fmadd(vy, vy, _mm256_mul_pd(vx, vx))),
+                                          lane_mask(w & 15));
+      const __m256d inv_r = inv_sqrt(r2);
+      const __m256d inv_r2 = _mm256_mul_pd(inv_r, inv_r);
+      const __m256d r = _mm256_mul_pd(r2, inv_r);
+      const __m256d vq = _mm256_mul_pd(qi, _mm256_load_pd(Q + j));
+      const __m256d Ec = DDD ? _mm256_mul_pd(vq, inv_r2) : _mm256_mul_pd(vq, inv_r);
+      const __m256d vs = _mm256_add_pd(si, _mm256_load_pd(SG + j));
+      const __m256d ve = _mm256_mul_pd(ei, _mm256_load_pd(E2 + j));
+      const __m256d sr2 = _mm256_mul_pd(_mm256_mul_pd(vs, vs), inv_r2);
+      const __m256d s6 = _mm256_mul_pd(_mm256_mul_pd(sr2, sr2), sr2);
+      const __m256d a6 = _mm256_mul_pd(ve, s6);                  // 4ε (σ/r)⁶
+      const __m256d El = fmadd(a6, s6, _mm256_sub_pd(zero, a6));   // 4ε((σ/r)¹² − (σ/r)⁶)
+      // (dE/dr)/r = (−2E_c [DDD] or −E_c, + 4ε(−12(σ/r)¹² + 6(σ/r)⁶)) / r²
+      const __m256d rdE = fmadd(DDD ? c2 : _mm256_set1_pd(-1.0), Ec, _mm256_mul_pd(a6, fmadd(c12, s6, c6)));
+      const __m256d dE_r = _mm256_mul_pd(rdE, inv_r2);
+      const __m256d xs = _mm256_min_pd(_mm256_max_pd(fmadd(r, v_iw, x0), zero), one);
+      const __m256d x2 = _mm256_mul_pd(xs, xs), x3 = _mm256_mul_pd(x2, xs);
+      const __m256d S = fmadd(x3, fmadd(fmadd(s6n, xs, s15), xs, s10n), one);
+      const __m256d dS = _mm256_mul_pd(x2, fmadd(fnmadd(d30, xs, d60), xs, _mm256_sub_pd(zero, d30)));
+      const __m256d dE = fmadd(S, dE_r, _mm256_mul_pd(_mm256_mul_pd(dS, _mm256_add_pd(Ec, El)), inv_r));
+      const __m256d fx = _mm256_mul_pd(dE, vx), fy = _mm256_mul_pd(dE, vy), fz = _mm256_mul_pd(dE, vz);
+      fix = _mm256_sub_pd(fix, fx);   // f_i = −dE/dr · d/r, d = x_i − x_j
+      fiy = _mm256_sub_pd(fiy, fy);
+      fiz = _mm256_sub_pd(fiz, fz);
+      _mm256_store_pd(FX + j, _mm256_add_pd(_mm256_load_pd(FX + j), fx));   // f_j = −f_i
+      _mm256_store_pd(FY + j, _mm256_add_pd(_mm256_load_pd(FY + j), fy));
+      _mm256_store_pd(FZ + j, _mm256_add_pd(_mm256_load_pd(FZ + j), fz));
+      vec = fmadd(S, Ec, vec);
+      vel = fmadd(S, El, vel);
+    }
+    FX[s] += hsum(fix);
+    FY[s] += hsum(fiy);
+    FZ[s] += hsum(fiz);
+  }
+  ec_out += hsum(vec);
+  el_out += hsum(vel);
 #else
-      for (int k = 0; k < m; ++k) {
-        const double r2 = dx[k] * dx[k] + dy[k] * dy[k] + dz[k] * dz[k];
+  const double far = (o_.r_off + 1.0) * (o_.r_off + 1.0);
+  double ec = 0, el = 0;
+  for (int s = 0; s < nslots_; ++s) {
+    const int b = crow[s], e = crow[s + 1];
+    if (b == e) continue;
+    const double qi = kq * Q[s];
+    double fix = 0, fiy = 0, fiz = 0;
+    for (int k = b; k < e; ++k) {
+      const int w = cent[k];
+      const int j0 = (w >> 4) << 2;
+      for (int l = 0; l < 4; ++l) {
+        const int j = j0 + l;
+        const double dx = X[s] - X[j], dy = Y[s] - Y[j], dz = Z[s] - Z[j];
+        const double r2 = (w >> l & 1) ? dx * dx + dy * dy + dz * dz : far;
         const double inv_r2 = 1.0 / r2;
         const double r = std::sqrt(r2);
         const double inv_r = r * inv_r2;
-        double Ec, dEc_r;   // E and (dE/dr)/r
+        double Ec, dEc_r;
         if (DDD) {
-          Ec = qq[k] * inv_r2;
+          Ec = qi * Q[j] * inv_r2;
           dEc_r = -2.0 * Ec * inv_r2;
         } else {
-          Ec = qq[k] * inv_r;
+          Ec = qi * Q[j] * inv_r;
           dEc_r = -Ec * inv_r2;
         }
-        const double sr2 = sg[k] * sg[k] * inv_r2;
+        const double sg = SG[s] + SG[j], e4 = E2[s] * E2[j];
+        const double sr2 = sg * sg * inv_r2;
         const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
-        const double El = e4[k] * (s12 - s6);
-        const double dE_r = dEc_r + e4[k] * (-12.0 * s12 + 6.0 * s6) * inv_r2;
+        const double El = e4 * (s12 - s6);
+        const double dE_r = dEc_r + e4 * (-12.0 * s12 + 6.0 * s6) * inv_r2;
         double xs = (r - r_on) * inv_w;
         xs = xs < 0.0 ? 0.0 : xs;
         xs = xs > 1.0 ? 1.0 : xs;
         const double x2 = xs * xs, x3 = x2 * xs;
         const double S = 1 - 10 * x3 + 15 * x3 * xs - 6 * x3 * x2;
         const double dS = (-30 * x2 + 60 * x3 - 30 * x3 * xs) * inv_w;
-        fr[k] = -(S * dE_r + dS * (Ec + El) * inv_r);
-        ecs[k] = S * Ec;
-        els[k] = S * El;
+        const double dE = S * dE_r + dS * (Ec + El) * inv_r;
+        fix -= dE * dx;
+        fiy -= dE * dy;
+        fiz -= dE * dz;
+        FX[j] += dE * dx;
+        FY[j] += dE * dy;
+        FZ[j] += dE * dz;
+        ec += S * Ec;
+        el += S * El;
       }
-      for (int k = 0; k < m; ++k) {
-        const Vec3 f(fr[k] * dx[k], fr[k] * dy[k], fr[k] * dz[k]);
-        Fi += f;
-        F[jj[k]] -= f;
-        ec += ecs[k];
-        el += els[k];
-      }
-#endif
     }
-#ifdef __AVX__
-    Fi(0) = hsum(vfx);
-    Fi(1) = hsum(vfy);
-    Fi(2) = hsum(vfz);
-#endif
-    F[i] += Fi;
+    FX[s] += fix;
+    FY[s] += fiy;
+    FZ[s] += fiz;
   }
-#ifdef __AVX__
-  ec = hsum(vec);
-  el = hsum(vel);
-#endif
   ec_out += ec;
   el_out += el;
+#endif
+}
+
+void Evaluator::nonbonded(const int* crow, const int* cent, const std::vector<Vec3>& x,
+                          std::vector<Vec3>& F, double& ec, double& el) {
+  for (int s = 0; s < nslots_; ++s) {
+    const int a = slot_atom_[s];
+    if (a < 0) continue;
+    cx_[s] = x[a](0);
+    cy_[s] = x[a](1);
+    cz_[s] = x[a](2);
+  }
+  std::fill(cfx_.begin(), cfx_.end(), 0.0);
+  std::fill(cfy_.begin(), cfy_.end(), 0.0);
+  std::fill(cfz_.begin(), cfz_.end(), 0.0);
+  if (o_.distance_dielectric) cluster_rows<true>(crow, cent, ec, el);
+  else cluster_rows<false>(crow, cent, ec, el);
+  last_lanes_ += 4 * static_cast<size_t>(crow[nslots_]);
+  for (int s = 0; s < nslots_; ++s) {
+    const int a = slot_atom_[s];
+    if (a >= 0) F[a] = Vec3(cfx_[s], cfy_[s], cfz_[s]);
+  }
 }
 
 double Evaluator::evaluate(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms,
                            const Data* data) {
-  if (!list_covers(x)) {
-    build_list(x);
-    if (grouped_) split_list();   // pairs inside a group keep their distances: cache stays valid
-  }
+  // Pairs inside a group keep their distances through a rebuild: the cache stays valid.
+  if (!list_covers(x)) build_list(x);
+  if (!prune_covers(x)) split_list(x);
   if (static_cast<int>(F.size()) != n_) F.resize(n_);
-  for (auto& f : F) f.setZero();
   EnergyTerms e;
   double ec = 0, el = 0;
-  const int* row = grouped_ ? arow_.data() : row_.data();
-  const int* pj = grouped_ ? apj_.data() : pj_.data();
-  if (o_.distance_dielectric) nonbonded_rows<true>(row, pj, x, F, ec, el);
-  else nonbonded_rows<false>(row, pj, x, F, ec, el);
-  last_evaluated_ += static_cast<size_t>(row[n_]);
-  total_evaluated_ += row[n_];
+  nonbonded(carow_.data(), caent_.data(), x, F, ec, el);
+  const size_t np = grouped_ ? napairs_ : npairs_;
+  last_evaluated_ += np;
+  total_evaluated_ += static_cast<std::int64_t>(np);
   e.coulomb = ec;
   e.lj = el;
   for (const auto& p : p14_act_) {
@@ -508,7 +621,7 @@ double Evaluator::compute_atoms(const std::vector<Vec3>& x, std::vector<Vec3>& F
   if (&x != &x_) x_ = x;   // same size: no allocation
   ungroup();
   tracked_ = false;
-  last_evaluated_ = 0;
+  last_evaluated_ = last_lanes_ = 0;
   return evaluate(x_, F, terms, nullptr);
 }
 
@@ -520,28 +633,71 @@ void Evaluator::ungroup() {
   tors_act_ = tors_;
   e_group_ = 0;
   cached_atoms_.clear();
+  prune_valid_ = false;   // re-split by bodies at the next evaluation
   napairs_ = nipairs_ = 0;
   ngroups_ = 0;
 }
 
-// Split of the list by group: pairs between groups (evaluated every step) and inside one group.
-void Evaluator::split_list() {
-  size_t na = 0, ni = 0;
-  const int* gk = gkey_.data();
-  for (int i = 0; i < n_; ++i) {
-    arow_[i] = static_cast<int>(na);
-    irow_[i] = static_cast<int>(ni);
-    const int gi = gk[i];
-    for (int p = row_[i]; p < row_[i + 1]; ++p) {
-      const int j = pj_[p];
-      if (gk[j] == gi) ipj_[ni++] = j;
-      else apj_[na++] = j;
+// Split of the list by group: pairs between groups (evaluated every step, pruned at x) and inside
+// one group; an entry whose cluster spans both keeps its lanes apart by mask.
+void Evaluator::split_list(const std::vector<Vec3>& x) {
+  ++prunes_;
+  for (int s = 0; s < nslots_; ++s) {
+    const int a = slot_atom_[s];
+    slot_gkey_[s] = a < 0 ? -1 : gkey_[a];
+    if (a < 0) continue;
+    cx_[s] = x[a](0);
+    cy_[s] = x[a](1);
+    cz_[s] = x[a](2);
+  }
+  const double rp = o_.r_off + kPrune, rp2 = rp * rp;
+  size_t na = 0, ni = 0, pa = 0, pi = 0;
+  const int* sg = slot_gkey_.data();
+  const double *X = cx_.data(), *Y = cy_.data(), *Z = cz_.data();
+  for (int s = 0; s < nslots_; ++s) {
+    carow_[s] = static_cast<int>(na);
+    cirow_[s] = static_cast<int>(ni);
+    const int gi = sg[s];
+    for (int k = crow_[s]; k < crow_[s + 1]; ++k) {
+      const int w = cent_[k], c = w >> 4, j = c << 2;
+      const int same = (sg[j] == gi) | (sg[j + 1] == gi) << 1 | (sg[j + 2] == gi) << 2 | (sg[j + 3] == gi) << 3;
+      const int ma = w & 15 & ~same, mi = w & 15 & same;
+      if (ma) {
+        pa += __builtin_popcount(ma);
+        int near = 0;   // lanes within r_off + kPrune now
+#ifdef __AVX__
+        const __m256d vx = _mm256_sub_pd(_mm256_set1_pd(X[s]), _mm256_load_pd(X + j));
+        const __m256d vy = _mm256_sub_pd(_mm256_set1_pd(Y[s]), _mm256_load_pd(Y + j));
+        const __m256d vz = _mm256_sub_pd(_mm256_set1_pd(Z[s]), _mm256_load_pd(Z + j));
+        const __m256d r2 = fmadd(vz, vz, fmadd(vy, vy, _mm256_mul_pd(vx, vx)));
+        near = _mm256_movemask_pd(_mm256_cmp_pd(r2, _mm256_set1_pd(rp2), _CMP_LT_OQ));
+#else
+        for (int l = 0; l < 4; ++l) {
+          const double dx = X[s] - X[j + l], dy = Y[s] - Y[j + l], dz = Z[s] - Z[j + l];
+          near |= (dx * dx + dy * dy + dz * dz < rp2) << l;
+        }
+#endif
+        if (ma & near) caent_[na++] = c << 4 | (ma & near);
+      }
+      if (mi) { cient_[ni++] = c << 4 | mi; pi += __builtin_popcount(mi); }
     }
   }
-  arow_[n_] = static_cast<int>(na);
-  irow_[n_] = static_cast<int>(ni);
-  napairs_ = na;
-  nipairs_ = ni;
+  carow_[nslots_] = static_cast<int>(na);
+  cirow_[nslots_] = static_cast<int>(ni);
+  naents_ = na;
+  nients_ = ni;
+  napairs_ = pa;
+  nipairs_ = pi;
+  for (int a = 0; a < n_; ++a) x_prune_[a] = x[a];
+  prune_valid_ = true;
+}
+
+bool Evaluator::prune_covers(const std::vector<Vec3>& x) const {
+  if (!prune_valid_) return false;
+  const double lim2 = 0.25 * kPrune * kPrune;
+  for (int a = 0; a < n_; ++a)
+    if ((x[a] - x_prune_[a]).squaredNorm() > lim2) return false;
+  return true;
 }
 
 namespace {
@@ -615,12 +771,10 @@ void Evaluator::regroup(const Model& m, const Data& d) {
   for (int a = 0; a < n_; ++a) gkey_[a] = group_[body_[a]];
   grouped_ = true;
   if (!list_covers(x_)) build_list(x_);
-  split_list();
+  split_list(x_);
   // Group-internal terms at the current positions: energy constant, forces kept in the group frame.
-  for (auto& f : F_) f.setZero();   // scratch for the internal forces
-  double ec = 0, el = 0, e = 0;
-  if (o_.distance_dielectric) nonbonded_rows<true>(irow_.data(), ipj_.data(), x_, F_, ec, el);
-  else nonbonded_rows<false>(irow_.data(), ipj_.data(), x_, F_, ec, el);
+  double ec = 0, el = 0, e = 0;   // F_: scratch for the internal forces (overwritten here)
+  nonbonded(cirow_.data(), cient_.data(), x_, F_, ec, el);
   last_evaluated_ += nipairs_;
   total_evaluated_ += static_cast<std::int64_t>(nipairs_);
   e = ec + el;
@@ -659,7 +813,7 @@ bool Evaluator::list_covers(const std::vector<Vec3>& x) const {
 
 double Evaluator::compute(const Model& model, const Data& data, std::vector<Vec6>& f_ext) {
   for (int a = 0; a < n_; ++a) x_[a] = data.r[body_[a]] + data.R[body_[a]] * local_[a];
-  last_evaluated_ = 0;
+  last_evaluated_ = last_lanes_ = 0;
   double E;
   bool finite = true;
   for (int a = 0; a < n_ && finite; ++a) finite = x_[a].allFinite();

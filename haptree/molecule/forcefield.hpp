@@ -8,6 +8,8 @@
 #include <cstdint>
 #include <vector>
 
+#include <Eigen/Core>
+
 #include "haptree/data.hpp"
 #include "haptree/molecule/topology.hpp"
 
@@ -81,6 +83,15 @@ class Evaluator {
   // Listed pairs through the kernel in the last compute (incl. the group set-up) and in all.
   size_t pairs_evaluated() const { return last_evaluated_; }
   std::int64_t pairs_evaluated_total() const { return total_evaluated_; }
+  // Kernel lanes (atom × 4-atom cluster entries × 4) in the last compute: the arithmetic actually
+  // done (pairs_evaluated() / kernel_lanes(): listed pairs per lane).
+  size_t kernel_lanes() const { return last_lanes_; }
+  // Exact pruning of the evaluated entries: a listed pair between groups at ≥ r_off + kPrune when
+  // the entries were last split is still at ≥ r_off (switch exactly 0) until an atom has moved
+  // kPrune/2, so its lane is dropped until then (re-split; counted by prunes()). It still counts in
+  // pairs_evaluated(): its (zero) term is accounted for, only without arithmetic.
+  static constexpr double kPrune = 0.02;   // nm
+  int prunes() const { return prunes_; }
   int regroups() const { return regroups_; }
   int rigid_groups() const { return ngroups_; }               // groups of >= 2 bodies
   size_t cached_pairs() const { return nipairs_; }            // listed pairs inside groups
@@ -90,15 +101,20 @@ class Evaluator {
 
  private:
   void build_list(const std::vector<Vec3>& x);
-  void split_list();   // list -> pairs between groups (a*) and inside groups (i*), by gkey_
+  // list -> pairs between groups (ca*, pruned at x) and inside groups (ci*), by gkey_
+  void split_list(const std::vector<Vec3>& x);
   bool list_covers(const std::vector<Vec3>& x) const;
   bool track_motion(const Model& model, const Data& data);
   void regroup(const Model& model, const Data& data);
   void ungroup();
   double evaluate(const std::vector<Vec3>& x, std::vector<Vec3>& F, EnergyTerms* terms, const Data* data);
+  void build_clusters();   // atom list (row_, pj_) -> atom × cluster entries (crow_, cent_)
+  bool prune_covers(const std::vector<Vec3>& x) const;
+  // Switched pairs of the entries crow/cent at positions x; F overwritten with their forces.
+  void nonbonded(const int* crow, const int* cent, const std::vector<Vec3>& x, std::vector<Vec3>& F,
+                 double& ec, double& el);
   template <bool DDD>
-  void nonbonded_rows(const int* row, const int* pj, const std::vector<Vec3>& x, std::vector<Vec3>& F,
-                      double& ec, double& el) const;
+  void cluster_rows(const int* crow, const int* cent, double& ec, double& el);
   NonbondedOptions o_;
   int n_;
   std::vector<int> body_;
@@ -126,7 +142,20 @@ class Evaluator {
   std::vector<Vec3> rel_t_, ref_t_;
   std::vector<int> still_;            // per body: steps its joint has not moved
   std::vector<char> gmark_;           // scratch (per body)
-  std::vector<int> arow_, apj_, irow_, ipj_;   // list split: between groups / inside groups
+  // 1×4 cluster kernel: slot s = 4c + l (cluster c, lane l) holds atom slot_atom_[s] (−1: padding);
+  // per slot, positions / parameters / forces as structure of arrays. The list as entries
+  // (c << 4 | lane mask) per i slot (CSR): atom i against the mask's atoms of cluster c.
+  using DVec = std::vector<double, Eigen::aligned_allocator<double>>;
+  int nslots_ = 0;
+  std::vector<int> slot_atom_, atom_slot_, slot_gkey_;
+  DVec cx_, cy_, cz_, cq_, cs_, ce_, cfx_, cfy_, cfz_;
+  std::vector<int> crow_, cent_;                 // all listed pairs
+  std::vector<int> carow_, caent_, cirow_, cient_;   // split: between groups / inside groups
+  std::vector<int> cstamp_, cpos_;               // scratch per cluster (build_clusters)
+  size_t nents_ = 0, naents_ = 0, nients_ = 0, last_lanes_ = 0;
+  std::vector<Vec3> x_prune_;         // positions at the last split
+  bool prune_valid_ = false;
+  int prunes_ = 0;
   size_t napairs_ = 0, nipairs_ = 0;
   std::vector<Vec3> F_loc_;           // per atom: group-internal force in the group root's frame
   std::vector<int> cached_atoms_;     // atoms with a group-internal force

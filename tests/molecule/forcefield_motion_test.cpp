@@ -244,3 +244,56 @@ TEST(ForceFieldMotion, GroupInsideMovingIsReformedAtOnce) {
   EXPECT_NEAR(Ea, E, kRel * c.e_scale);
   EXPECT_EQ(sc.force_field->pairs_evaluated(), sc.force_field->listed_pairs());
 }
+
+// The 1×4 cluster kernel (masked lanes, padding of the last cluster, rsqrt + Newton 1/r, pruning)
+// against the all-pairs reference, per atom (every atom its own body, so nothing is cached), for
+// both dielectrics and a switch other than the default (r_on, r_off move where the masked lanes'
+// "far" r² and the clamp land). Only summation order differs (tolerance (a) above: ≈ 1e-13 of
+// the force scale; 1/r is within 2 ulp), so 1e-9 of max |F| still catches one lost, doubled or
+// mis-masked pair (≥ 1e-5 of it). At least one scene has an atom count that is not a multiple of 4
+// (the last cluster padded; the greedy clusters may pad others too).
+TEST(ForceFieldMotion, ClusterKernelMatchesAllPairsPerAtom) {
+  int padded = 0;
+  for (const char* name : {"ala20", "polyaniline", "bacteriorhodopsin"}) {
+    MolecularScene sc = load_molecular_scene(name);
+    const Model& m = *sc.model;
+    Data d(m);
+    Eigen::VectorXd q = neutral_configuration(m);
+    // Off the input pose, without clashes (bR's 444-joint chain amplifies the angles).
+    const double amp = sc.natoms() > 1000 ? 0.002 : 0.05;
+    for (int k = 0; k < q.size(); ++k) q(k) += amp * std::sin(3.0 * k);
+    forward_kinematics(m, d, q);
+    std::vector<Vec3> x;
+    sc.atom_positions(d, x);
+    padded += sc.natoms() % 4 != 0;
+    for (const bool ddd : {true, false})
+      for (const double r_on : {0.8, 0.6}) {
+        ff::NonbondedOptions o;
+        o.distance_dielectric = ddd;
+        o.r_on = r_on;
+        o.r_off = r_on + (r_on == 0.8 ? 0.2 : 0.6);
+        // Every atom its own body: no term is skipped as rigid, so per-atom forces are complete.
+        std::vector<int> own(sc.natoms());
+        for (int a = 0; a < sc.natoms(); ++a) own[a] = a;
+        ff::Evaluator ev(sc.topology, own, {}, x, o);
+        std::vector<Vec3> F, F_ref;
+        ff::EnergyTerms t, t_ref;
+        const double E = ev.compute_atoms(x, F, &t);
+        const double E_ref = ff::evaluate_all_pairs(sc.topology, o, x, &F_ref, &t_ref);
+        double f_err = 0, f_scale = 0;
+        for (int a = 0; a < sc.natoms(); ++a) {
+          f_err = std::max(f_err, (F[a] - F_ref[a]).cwiseAbs().maxCoeff());
+          f_scale = std::max(f_scale, F_ref[a].cwiseAbs().maxCoeff());
+        }
+        EXPECT_LE(std::abs(E - E_ref), kRel * energy_scale(t_ref)) << name << " ddd " << ddd << " r_on " << r_on;
+        EXPECT_LE(std::abs(t.coulomb + t.lj - t_ref.coulomb - t_ref.lj), kRel * energy_scale(t_ref)) << name;
+        EXPECT_LE(f_err, kRel * f_scale) << name << " ddd " << ddd << " r_on " << r_on;
+        EXPECT_EQ(ev.pairs_evaluated(), ev.listed_pairs());
+        EXPECT_GT(ev.kernel_lanes(), 0u);   // pruned at r_off + kPrune: may be below listed_pairs()
+        std::printf("%s ddd %d r_on %.1f: E %.6f vs %.6f, max |dF| %.2e of %.2e; cluster fill %.3f\n", name, ddd,
+                    r_on, E, E_ref, f_err, f_scale,
+                    static_cast<double>(ev.pairs_evaluated()) / static_cast<double>(ev.kernel_lanes()));
+      }
+  }
+  EXPECT_GE(padded, 1);
+}
