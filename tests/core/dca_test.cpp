@@ -5,7 +5,6 @@
 #include <cstdio>
 
 #include <Eigen/Eigenvalues>
-#include <Eigen/QR>
 
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
@@ -363,9 +362,11 @@ TEST(DcaKernels, OneDofWIsTheConstraintSpaceInverse) {
                     d.Phi(Q, t.handle_num[Q], t.slot_k[node], t.slot_k[node]);
     const Mat6& W = d.W[node];
     const Vec6& S = d.S[J];
-    // Orthonormal complement T of S (Householder), κ of the 5×5 system it defines.
-    const Eigen::Matrix<double, 6, 6> QS = Eigen::HouseholderQR<Vec6>(S).householderQ();
-    const Eigen::Matrix<double, 6, 5> T = QS.rightCols<5>();
+    // Orthonormal complement T of S: eigenvectors of the projector 1 − S Sᵀ for eigenvalue 1 (the
+    // last five, ascending), and κ of the 5×5 system it defines.
+    const Mat6 Pc = Mat6::Identity() - S * S.transpose() / S.squaredNorm();
+    const Eigen::Matrix<double, 6, 5> T =
+        Eigen::SelfAdjointEigenSolver<Mat6>(Pc).eigenvectors().rightCols<5>();
     const Eigen::Matrix<double, 5, 5> A = T.transpose() * Ph * T;
     const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 5, 5>> es(A);
     const double kappa = es.eigenvalues().maxCoeff() / es.eigenvalues().minCoeff();
