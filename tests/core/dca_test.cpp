@@ -4,6 +4,8 @@
 #include <cmath>
 #include <cstdio>
 
+#include <Eigen/Eigenvalues>
+
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
 #include "tests/support/oracle.hpp"
@@ -331,6 +333,52 @@ TEST(Model, FingerprintChangesWithTheModel) {
   EXPECT_EQ(a->fingerprint, b2->fingerprint);
   o.seed = 3;
   EXPECT_NE(a->fingerprint, make_chain(o)->fingerprint);
+}
+
+
+// The 1-DOF joint kernel (structured Tᵀ Φ̂ T and padded blocks, issue 13.4) against the definition
+// of W = T (Tᵀ Φ̂ T)⁻¹ Tᵀ, independent of the oracle: W S = 0 and W Φ̂ W = W on every mobility-form
+// node with a revolute or prismatic joint of a tree with all joint types.
+TEST(DcaKernels, OneDofWIsTheConstraintSpaceInverse) {
+  SceneOptions o;
+  o.n = 64;
+  o.seed = 3;
+  o.mixed_joints = true;
+  o.free_root = true;
+  auto model = make_scene("random_tree", o);
+  const Model& m = *model;
+  const State st = random_state(m, 7);
+  Data d(m);
+  forward_dynamics(m, d, st);
+  const auto& t = m.tree;
+  int checked = 0;
+  for (int node = 0; node < t.nnodes(); ++node) {
+    if (t.is_leaf(node) || d.cluster_live[node] || (!d.leaf_side.empty() && d.leaf_side[node]))
+      continue;
+    const int J = t.joint[node];
+    if (m.joint_type[J] != JointType::kRevolute && m.joint_type[J] != JointType::kPrismatic) continue;
+    const int P = t.P[node], Q = t.Q[node];
+    const Mat6 Ph = d.Phi(P, t.handle_num[P], t.slot_j[node], t.slot_j[node]) +
+                    d.Phi(Q, t.handle_num[Q], t.slot_k[node], t.slot_k[node]);
+    const Mat6& W = d.W[node];
+    const Vec6& S = d.S[J];
+    // Orthonormal complement T of S: eigenvectors of the projector 1 − S Sᵀ for eigenvalue 1 (the
+    // last five, ascending), and κ of the 5×5 system it defines.
+    const Mat6 Pc = Mat6::Identity() - S * S.transpose() / S.squaredNorm();
+    const Eigen::Matrix<double, 6, 5> T =
+        Eigen::SelfAdjointEigenSolver<Mat6>(Pc).eigenvectors().rightCols<5>();
+    const Eigen::Matrix<double, 5, 5> A = T.transpose() * Ph * T;
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 5, 5>> es(A);
+    const double kappa = es.eigenvalues().maxCoeff() / es.eigenvalues().minCoeff();
+    // Round-off: the Cholesky solve errs by ≲ n² ε κ relative to ‖W‖ (n = 6); forming W Φ̂ W adds
+    // ≲ n² ε ‖W‖² ‖Φ̂‖ (‖Φ̂‖ may exceed the constrained block's λ_max).
+    const double eps36 = 36 * 2.2e-16;
+    EXPECT_LE((W * S).norm(), eps36 * kappa * W.norm()) << "node " << node;
+    EXPECT_LE((W * Ph * W - W).norm(), eps36 * (kappa * W.norm() + W.squaredNorm() * Ph.norm()))
+        << "node " << node;
+    ++checked;
+  }
+  EXPECT_GT(checked, 5);
 }
 
 }  // namespace
