@@ -118,6 +118,8 @@ struct AdaptiveData {
   // ref_velocity, pred_offset) are those adaptive_step computed at the end of the last step, for
   // the active joints' q, q̇ kept in kin_q (in active_joints order): the next step reuses them
   // instead of recomputing the same values (bitwise check of q, q̇; cleared by every other writer).
+  // A caller that rewrites Data's poses between steps (forward_kinematics) with the same q changes
+  // them only by round-off.
   bool kin_current = false;
   std::vector<double> kin_q;
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
@@ -174,8 +176,8 @@ const AdaptiveReport& adaptive_step(const Model& model, Data& data, State& state
                                     const AdaptiveOptions& options, double dt);
 
 // Poses of every body (Data::R, Data::r) from the frontier caches after an adaptive step. O(n):
-// for display and for snapshots of bodies deep inside rigid regions. Writes the values the step's
-// reduced kinematics already hold for reference bodies and active-joint ends unchanged.
+// for display and for snapshots of bodies deep inside rigid regions. Reference bodies keep the
+// poses and joint placements d_k of the step's reduced kinematics (the next step reuses them).
 void update_all_body_poses(const Model& model, Data& data, const AdaptiveData& ad) noexcept;
 
 }  // namespace haptree
