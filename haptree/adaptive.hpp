@@ -68,6 +68,7 @@ struct AdaptiveReport {
   double total_metric = 0;       // Σ over all joints (root metric) at the last selection
   std::int64_t nodes_bottom_up = 0, nodes_top_down = 0;   // last hybrid pass
   bool reselected = false;
+  bool kinematics_reused = false;   // last adaptive_step reused the previous step's kinematics
   std::int64_t selections = 0;
   // At the last selection: the exact neglected metric of the region it replaced, at that time
   // (−1: none, e.g. the first selection), and the interval chosen until the next one.
@@ -113,6 +114,14 @@ struct AdaptiveData {
   int selections_since_refresh = 0;
   std::vector<char> node_moved, world_ok, scratch_joint_moved;
   bool body_terms_current = false;   // Data's v, I are body_dynamics_terms of the current state
+  // The reduced kinematics in Data (poses of reference bodies and active-joint ends, S, c, v,
+  // ref_velocity, pred_offset) are those adaptive_step computed at the end of the last step, for
+  // the active joints' q, q̇ kept in kin_q (in active_joints order): the next step reuses them
+  // instead of recomputing the same values (bitwise check of q, q̇; cleared by every other writer).
+  // A caller that rewrites Data's poses between steps (forward_kinematics) with the same q changes
+  // them only by round-off.
+  bool kin_current = false;
+  std::vector<double> kin_q;
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;
@@ -167,7 +176,8 @@ const AdaptiveReport& adaptive_step(const Model& model, Data& data, State& state
                                     const AdaptiveOptions& options, double dt);
 
 // Poses of every body (Data::R, Data::r) from the frontier caches after an adaptive step. O(n):
-// for display and for snapshots of bodies deep inside rigid regions.
+// for display and for snapshots of bodies deep inside rigid regions. Reference bodies keep the
+// poses and joint placements d_k of the step's reduced kinematics (the next step reuses them).
 void update_all_body_poses(const Model& model, Data& data, const AdaptiveData& ad) noexcept;
 
 }  // namespace haptree

@@ -500,5 +500,70 @@ TEST(AdaptiveIncremental, SelectionAssemblesOnlyTheMovedRegionInFull) {
   }
 }
 
+TEST(AdaptiveStep, ReusedKinematicsGiveTheRecomputedTrajectoryBitwise) {
+  // adaptive_step reuses the reduced kinematics its previous step ended with when the active
+  // joints' q, q̇ are bitwise unchanged. Against a run that recomputes them every step
+  // (kin_current cleared), the trajectory must be bitwise identical through selections, the
+  // impulsive locks they do and a caller that changes q̇ between steps; and the reuse must happen
+  // on every step that has none of these (a count, not a time).
+  for (const char* name : {"protein_like", "random_tree"}) {
+    const bool mixed = std::string(name) == "random_tree";   // spherical/free/prismatic joints
+    auto m = scene(name, 150, 5, mixed);
+    State st(*m), st2(*m);
+    Data d(*m), d2(*m);
+    AdaptiveData ad(*m), ad2(*m);
+    AdaptiveOptions opt;
+    opt.budget = 24;
+    opt.reselect_every = 9;
+    const int body = m->nbodies - 1;
+    int reused = 0, expected = 0;
+    for (int i = 0; i < 60; ++i) {
+      for (State* s : {&st, &st2}) {
+        std::fill(s->f_ext.begin(), s->f_ext.end(), Vec6::Zero());
+        s->f_ext[body] = pull_y(5);
+        if (i == 31 && !ad.active_joints.empty())   // the caller changes an active joint's q̇
+          s->qd(m->v_adr[ad.active_joints.back()]) += 0.25;
+      }
+      ad2.kin_current = false;
+      adaptive_step(*m, d, st, ad, opt, 1e-3);
+      adaptive_step(*m, d2, st2, ad2, opt, 1e-3);
+      update_all_body_poses(*m, d, ad);   // as a display would between steps
+      reused += ad.report.kinematics_reused;
+      expected += i > 0 && !ad.report.reselected && i != 31;
+      EXPECT_FALSE(ad2.report.kinematics_reused);
+    }
+    EXPECT_EQ((st.q - st2.q).cwiseAbs().maxCoeff(), 0.0) << name;
+    EXPECT_EQ((st.qd - st2.qd).cwiseAbs().maxCoeff(), 0.0) << name;
+    EXPECT_EQ(reused, expected) << name;
+    EXPECT_GE(reused, 45) << name;   // 60 steps, 7 selections, one caller change
+  }
+}
+
+TEST(AdaptiveStep, LoadScanFindsEveryLoadedBody) {
+  // The hybrid pass finds loaded bodies by scanning f_ext 8 bodies at a time. Loads at group
+  // edges, in the short last group and a −0 (not a load) must give bitwise the q̈ of the explicit
+  // list of loaded bodies (scan_forces = false), which is summed in the same body order.
+  auto m = scene("random_tree", 203, 7, true);
+  ASSERT_NE((m->nbodies - 1) % 8, 0);   // a short last group
+  State st = random_state(*m, 3);
+  Data d(*m), d2(*m);
+  AdaptiveData ad(*m), ad2(*m);
+  std::mt19937 rng(5);
+  const std::vector<char> region = random_region(*m, rng, 0.3);
+  set_active_region(*m, d, st, ad, region);
+  set_active_region(*m, d2, st, ad2, region);
+  std::fill(st.f_ext.begin(), st.f_ext.end(), Vec6::Zero());
+  ad2.scan_forces = false;
+  for (int k : {1, 8, 9, 16, 17, 200, 201, m->nbodies - 1}) {
+    st.f_ext[k](k % 6) = 0.5 + k;
+    ad2.loaded_bodies.push_back(k);
+  }
+  st.f_ext[12](3) = -0.0;
+  const Eigen::VectorXd a = adaptive_forward_dynamics(*m, d, st, ad);
+  const Eigen::VectorXd b = adaptive_forward_dynamics(*m, d2, st, ad2);
+  EXPECT_EQ((a - b).cwiseAbs().maxCoeff(), 0.0);
+  EXPECT_GT(a.cwiseAbs().maxCoeff(), 0.0);
+}
+
 }  // namespace
 }  // namespace haptree
