@@ -209,20 +209,26 @@ namespace {
 // W = T (Tᵀ Φ̂ T)^{-1} Tᵀ = Xᵀ X with X = L^{-1} Tᵀ, L the Cholesky factor of the nc × nc joint
 // system (hand-rolled for fixed nc: Eigen's generic triangular solve is not inlined at this size).
 // X (nc × 6, column-major) is written to Xout for the block assembly. Returns false when a pivot
-// is not positive relative to the trace (a modelling error, §14.4).
+// is not positive relative to its own diagonal entry (a modelling error, §14.4).
 template <int NC>
 bool constraint_inverse(const Mat6& Phat, const JointMat& Tdyn, Mat6& W, double* Xout) {
   const Eigen::Matrix<double, 6, NC> T = Tdyn;
   const Eigen::Matrix<double, NC, NC> A = T.transpose() * Phat * T;
-  const double tol = 1e-13 * A.trace();
   bool ok = true;
   double L[NC][NC] = {};
   for (int j = 0; j < NC; ++j) {
     double s = A(j, j);
     for (int k = 0; k < j; ++k) s -= L[j][k] * L[j][k];
-    // A pivot that is not positive relative to the trace is round-off of a singular or indefinite
-    // system (e.g. two coaxial joints around a near-massless rod): that constraint direction is
-    // dropped (pseudo-inverse) and reported, instead of dividing by noise, which overflowed W.
+    // A pivot that is not positive relative to its diagonal entry is round-off of a singular or
+    // indefinite system (e.g. two coaxial joints around a near-massless rod): that constraint
+    // direction is dropped (pseudo-inverse) and reported, instead of dividing by noise, which
+    // overflowed W. The pivot's round-off is O(ε·A_jj) (Cholesky: s = A_jj − Σ L_jk² ≥ 0 with
+    // every term ≤ A_jj), so A_jj is its scale, not the trace: Tᵀ Φ̂ T mixes units (1/(kg m²),
+    // 1/kg), and at a 1 km weld off a light body on a moving joint the trace (≈ 1e8, the far
+    // point's translational mobility) dropped the heavy welded side's rotational pivot (≈ 1e-7,
+    // its own scale): O(1) errors, 1.5e3 × the bound (issue 14.1). A pivot kept by the old test
+    // is kept by this one (A_jj ≤ trace): where none was dropped, the bits are unchanged.
+    const double tol = 1e-13 * A(j, j);
     const bool drop = !(s > tol);
     if (drop) ok = false;
     L[j][j] = drop ? 0.0 : std::sqrt(s);
