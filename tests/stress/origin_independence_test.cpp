@@ -348,8 +348,7 @@ TEST(OriginIndependence, CouplingSnapshotAtAGrab) {
 // with the locked DOFs removed (their q̇ zeroed by set_active_region).
 // Known gap (docs/accuracy_and_stability.md): with a weld tens of metres long inside a rigid
 // frontier node the hybrid pass was 83× (native) to 236× (generic x86-64) above the bound (1.4e-12
-// against 1.0e-13 on seed 3 natively); since issue 14.1's pivot test 4.7× natively (generic not
-// re-measured);
+// against 1.0e-13 on seed 3 natively); since issue 14.1's pivot test 4.7× natively, 3.7× generic;
 // for those models only the placement invariance of a translation is asserted, and the oracle
 // error is printed.
 TEST(OriginIndependence, HybridPassOnARandomRegion) {
