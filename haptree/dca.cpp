@@ -244,20 +244,26 @@ inline Pad<6> pad_rows(const Block& B) {
 
 // W = T (Tᵀ Φ̂ T)^{-1} Tᵀ = Xᵀ X with X = L^{-1} Tᵀ, L the Cholesky factor of A = Tᵀ Φ̂ T (nc × nc;
 // only its lower triangle is read). Tp: T padded; Xt = Xᵀ padded (8 × nc) goes to the block
-// assembly. Returns false when a pivot is not positive relative to the trace (a modelling error,
-// §14.4).
+// assembly. Returns false when a pivot is not positive relative to its own diagonal entry (a
+// modelling error, §14.4).
 template <int NC>
 bool constraint_inverse(const Eigen::Matrix<double, NC, NC>& A, const Pad<NC>& Tp, Mat6& W,
                         Pad<NC>& Xt) {
-  const double tol = 1e-13 * A.trace();
   bool ok = true;
   double L[NC][NC] = {}, Linv[NC];
   for (int j = 0; j < NC; ++j) {
     double s = A(j, j);
     for (int k = 0; k < j; ++k) s -= L[j][k] * L[j][k];
-    // A pivot that is not positive relative to the trace is round-off of a singular or indefinite
-    // system (e.g. two coaxial joints around a near-massless rod): that constraint direction is
-    // dropped (pseudo-inverse) and reported, instead of dividing by noise, which overflowed W.
+    // A pivot that is not positive relative to its diagonal entry is round-off of a singular or
+    // indefinite system (e.g. two coaxial joints around a near-massless rod): that constraint
+    // direction is dropped (pseudo-inverse) and reported, instead of dividing by noise, which
+    // overflowed W. The pivot's round-off is O(ε·A_jj) (Cholesky: s = A_jj − Σ L_jk² ≥ 0 with
+    // every term ≤ A_jj), so A_jj is its scale, not the trace: Tᵀ Φ̂ T mixes units (1/(kg m²),
+    // 1/kg), and at a 1 km weld off a light body on a moving joint the trace (≈ 1e8, the far
+    // point's translational mobility) dropped the heavy welded side's rotational pivot (≈ 1e-7,
+    // its own scale): O(1) errors, 1.5e3 × the bound (issue 14.1). A pivot kept by the old test
+    // is kept by this one (A_jj ≤ trace): where none was dropped, the bits are unchanged.
+    const double tol = 1e-13 * A(j, j);
     const bool drop = !(s > tol);
     if (drop) ok = false;
     L[j][j] = drop ? 0.0 : std::sqrt(s);

@@ -84,11 +84,23 @@ TEST(NearSingular, BeyondTheRangeFiniteAndReported) {
     EXPECT_TRUE(all_finite(fd.qdd)) << a;
     EXPECT_LE(testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd), 1e-2) << a;
   }
+  // A result is either flagged or accurate: since the pivot test is relative to the pivot's own
+  // diagonal entry (issue 14.1, was the trace), a pivot that is not round-off is kept, so at these
+  // ratios a pass may report none — then its error must be within MassRatiosBetweenNeighbours'
+  // bound (growth × B). Here that bound exceeds 1 (the analysis promises nothing), so this only
+  // asserts a finite result; measured with the new test: 5.7e-3 at 1e-12, 6.8e-4 at 1e12, no
+  // pivot dropped.
   for (double r : {1e-12, 1e12}) {
     auto m = mass_ratio_chain(16, r);
-    const auto fd = dca(*m, clean_state(*m, 7));
+    const State st = clean_state(*m, 7);
+    const auto fd = dca(*m, st);
     EXPECT_TRUE(all_finite(fd.qdd)) << r;
-    EXPECT_GT(fd.singular_pivots, 0) << r;
+    const auto orc = testing::oracle_forward_dynamics(*m, st);
+    const double err = testing::rel_err(fd.qdd, orc.qdd);
+    const double bound = std::max(r, 1 / r) * testing::qdd_error_bound(orc, st, testing::kBoundC);
+    std::printf("[ratio %g] err %.3e, bound %.3e, singular pivots %ld\n", r, err, bound,
+                static_cast<long>(fd.singular_pivots));
+    EXPECT_TRUE(fd.singular_pivots > 0 || err <= bound) << r;
   }
 }
 
