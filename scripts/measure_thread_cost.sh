@@ -10,13 +10,8 @@ build=$(realpath "${1:-build}")
 duration=${2:-8}
 copts=${3:-}
 dopts=${4:-}
-if [ -z "${HAPTREE_IN_NETNS:-}" ]; then
-  exec unshare -n env HAPTREE_IN_NETNS=1 bash "$0" "$build" "$duration" "$copts" "$dopts"
-fi
-ip link set lo up
-ip link set lo multicast on
-ip route add 224.0.0.0/4 dev lo
-url="udpm://239.255.76.67:7667?ttl=0"
+# shellcheck source=scripts/netns_lo.sh
+source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "$copts" "$dopts"
 dir=$(mktemp -d /tmp/threadcost.XXXXXX)
 # shellcheck disable=SC2086
 "$build/coupler/coupler" --lcm-url "$url" --rate-hz 10000 $copts >"$dir/coupler.log" 2>&1 &
