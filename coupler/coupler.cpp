@@ -10,11 +10,13 @@
 #include <thread>
 
 #include "haptree/bus/channels.hpp"
+#include "haptree/bus/delivery.hpp"
 #include "haptree/bus/pacing.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
 #include "haptree/device/device.hpp"
+#include "haptree/fp_env.hpp"
 #include "haptree/lcmt_process_stats.hpp"
 
 namespace haptree {
@@ -141,8 +143,9 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
     });
     // One writer per device FEEDBACK channel over LCM too (shm: the segment check in publish_stats): a FEEDBACK
     // of another live instance is a second coupler on this device. Peeked from the header, not decoded (our
-    // own come back at the loop rate); an old stamp is a replay, not a writer.
-    bus_.subscribe_raw(ch_feedback_, [this](const void* d, uint32_t n, const std::string&) {
+    // own come back at the loop rate; run() delivers them in a window after each stats tick only); an old
+    // stamp is a replay, not a writer.
+    feedback_check_ = &bus_.subscribe_raw(ch_feedback_, [this](const void* d, uint32_t n, const std::string&) {
       int64_t utime = 0, inst = 0;
       if (!bus::peek_origin<lcmt_feedback>(d, n, &utime, &inst) || inst == instance_id_ || inst == 0) return;
       if (!(std::fabs(bus::message_age_s(utime)) <= bus::OriginLock::kDefaultMaxStartAgeS)) return;
@@ -203,6 +206,44 @@ bool Coupler::take_pose(const lcmt_device_state& m, double now_s) {
 
 // Warnings about refused inputs, once each, from the loop's stats tick (never inside the computation).
 void Coupler::report_problems() {
+  if (!reported_lock_ && opt_.model_fingerprint == 0 && locked_fingerprint_.load() != 0) {
+    reported_lock_ = true;
+    spdlog::info("coupler {}: locked onto model fingerprint {:016x}, the first one heard (name the model with "
+                 "--model-fingerprint to refuse any other)", opt_.user, locked_fingerprint_.load());
+  }
+  if (!warned_foreign_ && c_.foreign_rejected.load(std::memory_order_acquire) > 0) {
+    warned_foreign_ = true;
+    spdlog::warn("coupler {}: refusing snapshots of model {:016x}: this coupler {} model {:016x}. Another scene "
+                 "is served on this channel: check the sim_server's --scene/--n/--urdf and --channel-suffix.",
+                 opt_.user, foreign_fp_.load(), opt_.model_fingerprint ? "expects (--model-fingerprint)" : "locked onto",
+                 locked_fingerprint_.load());
+  }
+  if (!warned_old_snapshot_ && old_snapshots_.load(std::memory_order_acquire) > 0) {
+    warned_old_snapshot_ = true;
+    spdlog::warn("coupler {}: refusing snapshots of server instance {:016x} stamped {:.3f} s away from this host's "
+                 "clock: a replayed recording, or hosts whose clocks differ by more than {} s (synchronise them)",
+                 opt_.user, static_cast<uint64_t>(old_snapshot_instance_.load()), old_snapshot_age_s_.load(),
+                 bus::OriginLock::kDefaultMaxStartAgeS);
+  }
+  if (!warned_duplicate_ && c_.duplicate_rejected.load(std::memory_order_acquire) > 0) {
+    warned_duplicate_ = true;
+    spdlog::warn("coupler {}: refusing snapshots from server instance {:016x}: server instance {:016x} is live "
+                 "on the same channel (two sim_servers for one user, or a replay). Stop one of them.",
+                 opt_.user, static_cast<uint64_t>(duplicate_instance_.load()),
+                 static_cast<uint64_t>(duplicate_locked_.load()));
+  }
+  if (const int64_t r = c_.restarts.load(std::memory_order_acquire); r != reported_restarts_) {
+    reported_restarts_ = r;
+    spdlog::info("coupler {}: new server instance {:016x} (the previous one was silent for more than {} s), "
+                 "resuming at version {}{}", opt_.user, static_cast<uint64_t>(takeover_instance_.load()),
+                 opt_.stale_after_s, takeover_version_.load(), r > 1 ? fmt::format(" ({} restarts)", r) : "");
+  }
+  if (!warned_implausible_ && c_.implausible_rejected.load(std::memory_order_acquire) > 0) {
+    warned_implausible_ = true;
+    spdlog::warn("coupler {}: refusing snapshot version {} after version {} {:.3f} s earlier: no server steps that "
+                 "fast (a replayed or corrupted message)", opt_.user, implausible_version_.load(),
+                 implausible_after_.load(), implausible_dt_s_.load());
+  }
   if (!warned_device_ && refused_device_.load() > 0) {
     warned_device_ = true;
     spdlog::warn("coupler {}: refused {} DEVICE_STATE message(s) from a device instance other than the one "
@@ -269,16 +310,12 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   if (locked == 0) {
     locked_fingerprint_ = fp;
     locked = fp;
-    spdlog::info("coupler {}: locked onto model fingerprint {:016x}, the first one heard (name the model with "
-                 "--model-fingerprint to refuse any other)", opt_.user, fp);
   }
+  // The handler thread never logs (it carries what the loop waits for): the first case of each refusal is
+  // noted, report_problems logs it from the loop's stats tick. The handler is the only writer of the counters.
   if (fp != locked) {
-    c_.foreign_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_foreign_)
-      spdlog::warn("coupler {}: refusing snapshots of model {:016x}: this coupler {} model {:016x}. Another scene "
-                   "is served on this channel: check the sim_server's --scene/--n/--urdf and --channel-suffix.",
-                   opt_.user, fp, opt_.model_fingerprint ? "expects (--model-fingerprint)" : "locked onto", locked);
-    warned_foreign_ = true;
+    if (c_.foreign_rejected.load(std::memory_order_relaxed) == 0) foreign_fp_.store(fp, std::memory_order_relaxed);
+    c_.foreign_rejected.fetch_add(1, std::memory_order_release);
     return;
   }
   // One server instance at a time: a new one only after the old stream went silent for stale_after_s (by
@@ -291,39 +328,36 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   }
   if (o == bus::Origin::kTooOld) {   // a replay: it must not pass for a restarted server (chaos_soak)
     c_.stale_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_old_snapshot_)
-      spdlog::warn("coupler {}: refusing snapshots of server instance {:016x} stamped {:.3f} s away from this host's "
-                   "clock: a replayed recording, or hosts whose clocks differ by more than {} s (synchronise them)",
-                   opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), bus::message_age_s(snap_msg_.utime),
-                   bus::OriginLock::kDefaultMaxStartAgeS);
-    warned_old_snapshot_ = true;
+    if (old_snapshots_.load(std::memory_order_relaxed) == 0) {
+      old_snapshot_instance_.store(snap_msg_.instance_id, std::memory_order_relaxed);
+      old_snapshot_age_s_.store(bus::message_age_s(snap_msg_.utime), std::memory_order_relaxed);
+    }
+    old_snapshots_.fetch_add(1, std::memory_order_release);
     return;
   }
   if (!bus::accepted(o)) {
-    c_.duplicate_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_duplicate_)
-      spdlog::warn("coupler {}: refusing snapshots from server instance {:016x}: server instance {:016x} is live "
-                   "on the same channel (two sim_servers for one user, or a replay). Stop one of them.",
-                   opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), static_cast<uint64_t>(server_lock_.locked()));
-    warned_duplicate_ = true;
+    if (c_.duplicate_rejected.load(std::memory_order_relaxed) == 0) {
+      duplicate_instance_.store(snap_msg_.instance_id, std::memory_order_relaxed);
+      duplicate_locked_.store(server_lock_.locked(), std::memory_order_relaxed);
+    }
+    c_.duplicate_rejected.fetch_add(1, std::memory_order_release);
     return;
   }
   if (o == bus::Origin::kTakeover) {
-    spdlog::info("coupler {}: new server instance {:016x} (the previous one was silent for more than {} s), "
-                 "resuming at version {}", opt_.user, static_cast<uint64_t>(snap_msg_.instance_id), opt_.stale_after_s,
-                 snap_msg_.version);
+    takeover_instance_.store(snap_msg_.instance_id, std::memory_order_relaxed);
+    takeover_version_.store(snap_msg_.version, std::memory_order_relaxed);
     newest_version_ = -1;
-    c_.restarts.fetch_add(1, std::memory_order_relaxed);
+    c_.restarts.fetch_add(1, std::memory_order_release);
   }
   if (snap_msg_.version < 0 ||
       (newest_version_ >= 0 &&
        static_cast<double>(snap_msg_.version - newest_version_) > kVersionSlack + kMaxStepRate * (now - newest_accept_s_))) {
-    c_.implausible_rejected.fetch_add(1, std::memory_order_relaxed);
-    if (!warned_implausible_)
-      spdlog::warn("coupler {}: refusing snapshot version {} after version {} {:.3f} s earlier: no server steps that "
-                   "fast (a replayed or corrupted message)", opt_.user, snap_msg_.version, newest_version_,
-                   now - newest_accept_s_);
-    warned_implausible_ = true;
+    if (c_.implausible_rejected.load(std::memory_order_relaxed) == 0) {
+      implausible_version_.store(snap_msg_.version, std::memory_order_relaxed);
+      implausible_after_.store(newest_version_, std::memory_order_relaxed);
+      implausible_dt_s_.store(now - newest_accept_s_, std::memory_order_relaxed);
+    }
+    c_.implausible_rejected.fetch_add(1, std::memory_order_release);
     return;
   }
   if (snap_msg_.version <= newest_version_) {
@@ -333,6 +367,9 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   CouplingSnapshot& back = snap_box_.back();
   bus::from_lcmt(snap_msg_, back);
   back.source_instance = snap_msg_.instance_id;
+  // No subnormal value reaches the loop, whoever built the snapshot (issue 13.3; sim_server's are flushed).
+  if (const std::size_t k = flush_subnormals(back.values.data(), back.values.size()))
+    c_.subnormals_flushed.fetch_add(static_cast<int64_t>(k), std::memory_order_relaxed);
   if (back.grabs.size() != 1 || validate_coupling_snapshot(back) != CouplingStatus::kOk || !ws_.fits(back)) {
     c_.bad_rejected.fetch_add(1, std::memory_order_relaxed);
     return;
@@ -512,8 +549,13 @@ void Coupler::publish_settings() {
 }
 
 int Coupler::run(const std::atomic<bool>& stop) {
+  // FTZ/DAZ in the loop (issue 13.3): no microcode assist for a subnormal operand on any CPU, whatever
+  // the snapshot holds (on_snapshot flushes them too) or the arithmetic makes.
+  const ScopedFlushDenormals ftz;
+  c_.ftz_daz.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
   const double period = 1.0 / opt_.rate_hz;
   double next = since(kEpoch);
+  if (feedback_check_) feedback_check_until_s_ = next + kWriterCheckWindow_s;   // the first window
   double next_stats = next + 1.0, stats_start = next;
   publish_settings();
   double next_settings = next + kSettingsEvery_s;
@@ -523,8 +565,16 @@ int Coupler::run(const std::atomic<bool>& stop) {
     iterate(now);
     ++it;
     c_.iterations.store(it, std::memory_order_relaxed);
+    if (feedback_check_until_s_ >= 0 && now >= feedback_check_until_s_) {   // end of the writer-check window
+      bus::set_delivery(bus_, *feedback_check_, false);
+      feedback_check_until_s_ = -1;
+    }
     if (now >= next_stats) {   // once a second, outside the computation
       publish_stats(now - stats_start, it - it_at_stats);
+      if (feedback_check_) {
+        bus::set_delivery(bus_, *feedback_check_, true);
+        feedback_check_until_s_ = now + kWriterCheckWindow_s;
+      }
       it_at_stats = it;
       stats_start = now;
       next_stats += 1.0;
@@ -545,6 +595,8 @@ int Coupler::run(const std::atomic<bool>& stop) {
                                stop);
     }
   }
+  if (feedback_check_) bus::set_delivery(bus_, *feedback_check_, true);   // as constructed
+  report_problems();   // what the last second refused
   return 0;
 }
 

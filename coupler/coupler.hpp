@@ -63,6 +63,8 @@ struct CouplerCounters {
   std::atomic<int64_t> grab_feedbacks{0};         // feedback messages sent while grabbing
   std::atomic<int64_t> grab_watchdog_zeros{0};    // ... of which exactly zero because of the watchdog
   std::atomic<int64_t> last_snapshot_utime{0};    // system clock (µs) when the newest snapshot was accepted
+  std::atomic<int64_t> subnormals_flushed{0};     // subnormal values of accepted snapshots set to 0 (issue 13.3)
+  std::atomic<bool> ftz_daz{false};               // run()'s thread computes with flush-to-zero + denormals-are-zero
 };
 
 class Coupler {
@@ -99,7 +101,14 @@ class Coupler {
   double newest_accept_s_ = -1;        // handler-side: when newest_version_ was accepted
   bus::OriginLock server_lock_;        // handler-side: one live server instance
   std::atomic<uint64_t> locked_fingerprint_{0};
-  bool warned_foreign_ = false, warned_duplicate_ = false, warned_implausible_ = false, warned_old_snapshot_ = false;
+  // What the snapshot handler refused, for report_problems (the handler never logs): the first case of each.
+  std::atomic<uint64_t> foreign_fp_{0};
+  std::atomic<int64_t> old_snapshots_{0}, old_snapshot_instance_{0}, duplicate_instance_{0}, duplicate_locked_{0},
+      takeover_instance_{0}, takeover_version_{0}, implausible_version_{0}, implausible_after_{0};
+  std::atomic<double> old_snapshot_age_s_{0}, implausible_dt_s_{0};
+  bool warned_foreign_ = false, warned_duplicate_ = false, warned_implausible_ = false, warned_old_snapshot_ = false,
+       reported_lock_ = false;
+  int64_t reported_restarts_ = 0;
   std::atomic<double> snapshot_recv_s_{-1};   // arrival time (loop clock) of the newest accepted snapshot
   // device pose
   bus::LatestValue<lcmt_device_state> pose_box_;
@@ -107,6 +116,11 @@ class Coupler {
   std::unique_ptr<bus::ShmReader> shm_pose_;
   std::unique_ptr<bus::ShmWriter> shm_feedback_;
   std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
+  // LCM: our device's FEEDBACK channel is delivered only kWriterCheckWindow_s after each stats tick (our
+  // own messages would otherwise wake the handler thread at the loop rate; issue 15.1).
+  bus::RawSubscription* feedback_check_ = nullptr;
+  double feedback_check_until_s_ = -1;
+  static constexpr double kWriterCheckWindow_s = 0.02;
   bus::OriginLock device_lock_;        // pose thread (handler for LCM, loop for shm): one device instance
   int64_t newest_pose_seq_ = -1;
   std::atomic<int64_t> refused_device_{0}, refused_writer_{0}, followed_device_{0}, old_device_{0};

@@ -8,6 +8,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "haptree/fp_env.hpp"
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/pacing.hpp"
 #include "haptree/bus/wire.hpp"
@@ -136,6 +137,9 @@ double DeviceBridge::latency_percentile_us(double q) const { return hist_.percen
 uint64_t DeviceBridge::latency_samples() const { return hist_.count(); }
 
 int DeviceBridge::run(const std::atomic<bool>& stop) {
+  // FTZ/DAZ in the device loop (issue 13.3), as in the coupler's: no subnormal operand costs an assist.
+  const ScopedFlushDenormals ftz;
+  ftz_daz_.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
   const double period = 1.0 / opt_.rate_hz;
   const double t0 = now_s();
   double next = t0, next_mirror = t0, next_report = t0 + 1.0;

@@ -64,6 +64,8 @@ class DeviceBridge {
   // FEEDBACK messages refused because another coupler instance (the one followed) is live.
   int64_t feedback_refused() const { return refused_.load(); }
   int64_t coupler_takeovers() const { return takeovers_.load(); }
+  // run()'s thread computes with flush-to-zero + denormals-are-zero (issue 13.3).
+  bool ftz_daz() const { return ftz_daz_.load(); }
 
  private:
   void on_feedback(const lcmt_feedback& m, double now_s);
@@ -71,6 +73,7 @@ class DeviceBridge {
   void poll_shm_feedback();
   void report_problems();
   int64_t instance_id_;
+  std::atomic<bool> ftz_daz_{false};
   bus::OriginLock coupler_lock_;   // used by the thread that receives feedback (handler for LCM, loop for shm)
   std::atomic<int64_t> refused_{0}, takeovers_{0}, refused_id_{0}, followed_id_{0}, too_old_{0};
   int64_t reported_takeovers_ = 0;

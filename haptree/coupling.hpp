@@ -103,6 +103,8 @@ void make_coupling_snapshot(const Model& model, const Data& data, const std::vec
 
 // Number of subnormal doubles in [p, p + n) (diagnostics and tests).
 std::size_t count_subnormals(const double* p, std::size_t n) noexcept;
+// Sets every subnormal value of [v, v + n) to 0 (each changes by less than 2⁻¹⁰²²); returns how many.
+std::size_t flush_subnormals(double* v, std::size_t n) noexcept;
 
 // Grab g's world point and point velocity from body-local coordinates, from Data after kinematics
 // and body_dynamics_terms (forward_dynamics does both).

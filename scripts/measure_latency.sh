@@ -15,13 +15,8 @@ build=$(realpath "${1:-build}")
 duration=${2:-8}
 csv=${3:-latency.csv}
 filter=${4:-.}
-if [ -z "${HAPTREE_IN_NETNS:-}" ]; then
-  exec unshare -n env HAPTREE_IN_NETNS=1 bash "$0" "$build" "$duration" "$csv" "$filter"
-fi
-ip link set lo up
-ip link set lo multicast on
-ip route add 224.0.0.0/4 dev lo
-url="udpm://239.255.76.67:7667?ttl=0"
+# shellcheck source=scripts/netns_lo.sh
+source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "$csv" "$filter"
 command -v stress-ng >/dev/null || { echo "stress-ng not installed (apt-get install stress-ng)" >&2; exit 2; }
 
 # name | coupler options | device_bridge options   (coupler --rate-hz: 20 kHz on shm, 10 kHz on udpm, unless set)

@@ -15,13 +15,8 @@ duration=${2:-12}
 shift 2 2>/dev/null || true
 values=("$@")
 [ ${#values[@]} -gt 0 ] || values=(0.005 0.01 0.02 0.05 0.1)
-if [ -z "${HAPTREE_IN_NETNS:-}" ]; then
-  exec unshare -n env HAPTREE_IN_NETNS=1 bash "$0" "$build" "$duration" "${values[@]}"
-fi
-ip link set lo up
-ip link set lo multicast on
-ip route add 224.0.0.0/4 dev lo
-url="udpm://239.255.76.67:7667?ttl=0"
+# shellcheck source=scripts/netns_lo.sh
+source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "${values[@]}"
 # Grab geometry: the device's grab waypoint (0, 0, 0.01 m) x position scale 10 onto the last body at q = 0.
 # The body's origin comes from the launcher's embedded run (its coupler logs the offset it was given).
 probe=$(mktemp -d /tmp/stale_after.XXXXXX)

@@ -74,6 +74,7 @@ struct SimServerCounters {
   std::atomic<int64_t> clamp_events{0};       // user forces above max_user_force, clamped
   std::atomic<int64_t> nonfinite_events{0};   // non-finite user forces, zeroed
   std::atomic<double> user_force_gap_max_s{0};  // longest time between two USER_FORCE of a user (whole run)
+  std::atomic<bool> ftz_daz{false};           // run()'s thread steps with flush-to-zero + denormals-are-zero
 };
 
 class SimServer {

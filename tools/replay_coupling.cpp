@@ -25,9 +25,11 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
+#include "haptree/fp_env.hpp"
 #include "haptree/safety.hpp"
 
 int main(int argc, char** argv) {
+  const haptree::ScopedFlushDenormals ftz;   // the coupler's loop computes with FTZ/DAZ: the same arithmetic
   CLI::App app{"replay_coupling: reproduce logged feedback forces from logged snapshots and poses"};
   std::string log;
   haptree::CouplerOptions o;
@@ -212,6 +214,7 @@ int main(int argc, char** argv) {
       }
       haptree::CouplingSnapshot s;
       haptree::bus::from_lcmt(m, s);
+      haptree::flush_subnormals(s.values.data(), s.values.size());   // as the coupler does on arrival
       remember(snaps, snap_order, snap_serial, Key{m.instance_id, s.version}, s);
       remember(snaps, snap_order, snap_serial, Key{0, s.version}, s);
     } else if (channel == c_state) {

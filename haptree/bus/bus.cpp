@@ -1,4 +1,5 @@
 #include "haptree/bus/bus.hpp"
+#include "haptree/bus/delivery.hpp"
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
@@ -164,10 +165,29 @@ int Bus::publish_raw(const std::string& channel, const void* data, int size) noe
 RawSubscription& Bus::subscribe_raw(const std::string& channel, RawSubscription::Callback cb) {
   auto sub = std::make_unique<RawSubscription>(channel, std::move(cb));
   auto* raw = sub.get();
-  raw->lcm_subscription = lcm_->subscribe(channel, &RawSubscription::on_raw, raw);
+  {
+    std::lock_guard<std::mutex> lock(delivery_mutex());
+    raw->lcm_subscription = lcm_->subscribe(channel, &RawSubscription::on_raw, raw);
+  }
   raw->auth = auth_.get();
   add(std::move(sub));
   return *raw;
+}
+
+std::mutex& delivery_mutex() {
+  static std::mutex m;
+  return m;
+}
+
+void set_delivery(Bus& bus, RawSubscription& sub, bool on) {
+  std::lock_guard<std::mutex> lock(delivery_mutex());
+  if (on == (sub.lcm_subscription != nullptr)) return;
+  if (on) {
+    sub.lcm_subscription = bus.lcm().subscribe(sub.channel(), &RawSubscription::on_raw, &sub);
+  } else {
+    bus.lcm().unsubscribe(sub.lcm_subscription);
+    sub.lcm_subscription = nullptr;
+  }
 }
 
 void Bus::add(std::unique_ptr<SubscriptionBase> sub) {

@@ -18,14 +18,6 @@ using namespace std::chrono_literals;
 
 constexpr const char* kUrl = "udpm://239.255.76.67:7671?ttl=0";
 
-#define CHILD_CHECK(cond, fd, ...)  \
-  do {                              \
-    if (!(cond)) {                  \
-      dprintf(fd, __VA_ARGS__);     \
-      return 1;                     \
-    }                               \
-  } while (0)
-
 TEST(KeyedUdpm, StrangersOtherKeysReplaysAndTamperingAreDroppedAndCounted) {
   const auto r = run_in_private_netns(kNetnsMulticastSetup, [](int fd) {
     try {

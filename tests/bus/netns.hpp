@@ -14,6 +14,15 @@
 #include <functional>
 #include <string>
 
+// In the child: on a failed check, write the reason (printf-style) to fd and return 1 from fn.
+#define CHILD_CHECK(cond, fd, ...) \
+  do {                             \
+    if (!(cond)) {                 \
+      dprintf(fd, __VA_ARGS__);    \
+      return 1;                    \
+    }                              \
+  } while (0)
+
 namespace haptree::testing {
 
 struct NetnsResult {

@@ -17,14 +17,6 @@ using namespace std::chrono_literals;
 
 constexpr const char* kUrl = "udpm://239.255.76.67:7669?ttl=0";
 
-#define CHILD_CHECK(cond, fd, ...)  \
-  do {                              \
-    if (!(cond)) {                  \
-      dprintf(fd, __VA_ARGS__);     \
-      return 1;                     \
-    }                               \
-  } while (0)
-
 TEST(Udpm, MissingMulticastRouteIsExplainedWithTheFix) {
   const auto r = run_in_private_netns("ip link set lo up", [](int fd) {
     try {

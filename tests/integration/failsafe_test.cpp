@@ -18,6 +18,7 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/dca.hpp"
+#include "haptree/fp_env.hpp"
 #include "haptree/lcmt_process_stats.hpp"
 #include "haptree/scenes.hpp"
 #include "sim_server/sim_server.hpp"
@@ -492,6 +493,85 @@ TEST(Failsafe, CouplerOverLcmNoticesASecondCouplerOnItsDevice) {
   handler.stop();
   EXPECT_EQ(before, 0);
   EXPECT_EQ(after, 5);
+}
+
+}  // namespace
+}  // namespace haptree
+
+namespace haptree {
+namespace {
+
+// Issue 15.1: the check above must not wake the handler thread for each of the coupler's own FEEDBACK
+// messages. While run() loops, the channel is delivered only in a kWriterCheckWindow_s (20 ms) window after
+// each stats tick: over ~2.3 s (3 windows, 60 ms) the subscription sees a few % of the coupler's own messages
+// (bound 20 %: windows that a loaded machine stretches), and a second writer publishing all along is still
+// seen. Before the window, every own message reached the handler (received ≈ published).
+TEST(Failsafe, CouplerChecksItsFeedbackChannelForASecondWriterInWindowsOnly) {
+  bus::Bus bus("memq://");
+  CouplerOptions co;
+  co.grab_body = 1;
+  co.rate_hz = 2000;
+  co.busy_wait = false;
+  Coupler coupler(bus, co);
+  const bus::SubscriptionBase* check = nullptr;
+  for (const auto* s : bus.subscriptions())
+    if (s->channel() == bus::channel::feedback(0)) check = s;
+  ASSERT_NE(check, nullptr);
+  bus::HandlerThread handler(bus, 2);
+  std::atomic<bool> stop{false};
+  std::thread loop([&] { coupler.run(stop); });
+  std::thread other([&] {   // a second coupler on the same device, at 500 Hz
+    for (int64_t seq = 1; !stop; ++seq) {
+      lcmt_feedback f{};
+      bus::stamp(f, 333);
+      f.seq = seq;
+      bus.publish(bus::channel::feedback(0), f);
+      std::this_thread::sleep_for(2ms);
+    }
+  });
+  std::this_thread::sleep_for(2300ms);
+  stop = true;
+  loop.join();
+  other.join();
+  handler.stop();
+  const int64_t own = coupler.counters().iterations.load(), received = check->stats().received.load();
+  std::printf("own FEEDBACK published %lld, delivered to the writer check %lld (with the other writer's); "
+              "other-writer messages counted %lld\n", static_cast<long long>(own), static_cast<long long>(received),
+              static_cast<long long>(coupler.counters().other_feedback_writer.load()));
+  ASSERT_GT(own, 1000);
+  EXPECT_LT(received, own / 5);
+  EXPECT_GT(coupler.counters().other_feedback_writer.load(), 0);
+}
+
+// Issue 13.3: a snapshot that holds subnormal values (a producer other than sim_server, e.g. Python) has
+// them set to 0 on arrival, counted; the coupler's loop computes with FTZ/DAZ on.
+TEST(Failsafe, CouplerFlushesSubnormalsOfIncomingSnapshots) {
+  bus::Bus bus("memq://");
+  CouplerOptions co;
+  co.rate_hz = 1000;
+  co.busy_wait = false;
+  Coupler coupler(bus, co);
+  bus::HandlerThread handler(bus, 2);
+  FakeServer srv(bus);
+  int planted = 0;
+  for (double& v : srv.snap.values)   // zeros of the blocks become the smallest subnormals, ± (7 of them)
+    if (v == 0.0 && planted < 7) v = (planted++ % 2 ? -1 : 1) * std::numeric_limits<double>::denorm_min();
+  ASSERT_EQ(planted, 7);
+  ASSERT_EQ(count_subnormals(srv.snap.values.data(), srv.snap.values.size()), 7u);
+  std::atomic<bool> stop{false};
+  std::thread loop([&] { coupler.run(stop); });
+  srv.send(7007, 1);
+  for (int i = 0; i < 200 && coupler.counters().snapshots_accepted.load() == 0; ++i) std::this_thread::sleep_for(5ms);
+  std::this_thread::sleep_for(20ms);
+  stop = true;
+  loop.join();
+  handler.stop();
+  EXPECT_EQ(coupler.counters().snapshots_accepted.load(), 1);
+  EXPECT_EQ(coupler.counters().subnormals_flushed.load(), 7);
+#ifdef HAPTREE_HAVE_MXCSR
+  EXPECT_TRUE(coupler.counters().ftz_daz.load());
+  EXPECT_FALSE(ScopedFlushDenormals::active()) << "the test thread's mode changed";
+#endif
 }
 
 }  // namespace

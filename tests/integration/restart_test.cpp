@@ -44,13 +44,7 @@ bool alive(pid_t p) {
   return ::waitpid(p, &st, WNOHANG) == 0;
 }
 
-// SIGTERM + wait; returns the exit code (128 + signal if killed).
-int stop_and_reap(pid_t p) {
-  ::kill(p, SIGTERM);
-  int st = 0;
-  ::waitpid(p, &st, 0);
-  return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-}
+using testing::stop_and_reap;   // SIGTERM + wait; the exit code (128 + signal if killed)
 
 struct Sample {
   double t_s;   // since the test's t0

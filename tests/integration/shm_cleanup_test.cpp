@@ -41,12 +41,6 @@ std::vector<std::string> segments_with(const std::string& tag) {
   return out;
 }
 
-int reap(pid_t p) {
-  int st = 0;
-  ::waitpid(p, &st, 0);
-  return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-}
-
 std::string last_line_with(const std::string& path, const std::string& key) {
   std::ifstream f(path);
   std::string line, found;
@@ -59,18 +53,11 @@ TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
   tools::TcpqHub hub(0);
   const std::string suffix = "_D" + std::to_string(::getpid());
   const std::string dir = ::testing::TempDir();
-  int body = 0;
-  const std::vector<std::string> offset = testing::grab_offset_args(&body);
   const std::vector<std::string> common = {"--lcm-url", hub.url(), "--channel-suffix", suffix};
-  std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--scene", "protein_like", "--n", "32", "--rate-hz", "1000"};
-  std::vector<std::string> cpl = {HAPTREE_COUPLER, "--grab-body", std::to_string(body), "--rate-hz", "5000",
-                                  "--sleep", "--stale-after-s", "0.05", "--shm"};
-  cpl.insert(cpl.end(), offset.begin(), offset.end());
-  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--shm", "--option", "approach_s=0.2", "--option", "hold_s=60"};
-  for (auto* v : {&sim, &cpl, &dev}) v->insert(v->end(), common.begin(), common.end());
-  const pid_t p_sim = testing::spawn_logged(sim, dir + "shm_dead_sim.log");
-  const pid_t p_cpl = testing::spawn_logged(cpl, dir + "shm_dead_coupler.log");
-  const pid_t p_dev = testing::spawn_logged(dev, dir + "shm_dead_bridge1.log");
+  const auto a = testing::shm_session_args(HAPTREE_SIM_SERVER, HAPTREE_COUPLER, HAPTREE_DEVICE_BRIDGE, hub.url(), suffix);
+  const pid_t p_sim = testing::spawn_logged(a.sim, dir + "shm_dead_sim.log");
+  const pid_t p_cpl = testing::spawn_logged(a.coupler, dir + "shm_dead_coupler.log");
+  const pid_t p_dev = testing::spawn_logged(a.device, dir + "shm_dead_bridge1.log");
   ASSERT_GT(p_sim, 0);
   ASSERT_GT(p_cpl, 0);
   ASSERT_GT(p_dev, 0);
@@ -86,8 +73,8 @@ TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
   ASSERT_GE(f_before, 0.5) << "no pull force before the kill (logs in " << dir << ")";
   ::kill(p_cpl, SIGKILL);
   ::kill(p_dev, SIGKILL);
-  reap(p_cpl);
-  reap(p_dev);
+  testing::reap(p_cpl);
+  testing::reap(p_dev);
   // The dead coupler's FEEDBACK segment is still there (nobody could unlink it) ...
   EXPECT_FALSE(segments_with("HAPTREE_FEEDBACK_0" + suffix).empty());
   // ... and a new device_bridge without a coupler must render nothing of it.
@@ -98,9 +85,9 @@ TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
   ASSERT_GT(p_dev2, 0);
   std::this_thread::sleep_for(1500ms);
   ::kill(p_dev2, SIGTERM);
-  const int rc2 = reap(p_dev2);
+  const int rc2 = testing::reap(p_dev2);
   ::kill(p_sim, SIGTERM);
-  reap(p_sim);
+  testing::reap(p_sim);
   hub.stop();
   const std::string summary = last_line_with(log2, "device_bridge: ");
   std::printf("before the kill |f| %.3f N; new bridge: %s\n", f_before, summary.c_str());
@@ -123,7 +110,7 @@ int launcher_session(const std::string& name, double duration_s, Act act) {
   while (segments_with(tag).size() < 2 && Clock::now() < until) std::this_thread::sleep_for(5ms);
   EXPECT_EQ(segments_with(tag).size(), 2u) << name << ": the session's two segments never appeared";
   act(p);
-  return reap(p);
+  return testing::reap(p);
 }
 
 void expect_no_segments_within(pid_t launcher, double seconds, const std::string& what) {

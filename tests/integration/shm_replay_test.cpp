@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "haptree/bus/bus.hpp"
+#include "tests/integration/log_recorder.hpp"
 #include "tests/integration/spawn.hpp"
 #include "tools/tcpq_hub.hpp"
 
@@ -25,12 +26,7 @@ namespace {
 
 using namespace std::chrono_literals;
 
-int stop_and_reap(pid_t p) {
-  ::kill(p, SIGTERM);
-  int st = 0;
-  ::waitpid(p, &st, 0);
-  return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-}
+using testing::stop_and_reap;
 
 long long number_before(const std::string& out, const std::string& word) {
   const auto k = out.find(word);
@@ -45,37 +41,17 @@ TEST(ShmReplay, RecordedShmSessionReplaysWithDefaults) {
   const std::string dir = ::testing::TempDir();
   const std::string path = dir + "haptree_shm_session.lcmlog";
   std::remove(path.c_str());
-  int body = 0;
-  const std::vector<std::string> offset = testing::grab_offset_args(&body);
-  const std::vector<std::string> common = {"--lcm-url", hub.url(), "--channel-suffix", suffix};
-  std::vector<std::string> sim = {HAPTREE_SIM_SERVER, "--scene", "protein_like", "--n", "32", "--rate-hz", "1000"};
-  std::vector<std::string> cpl = {HAPTREE_COUPLER, "--grab-body", std::to_string(body), "--rate-hz", "5000",
-                                  "--sleep", "--stale-after-s", "0.05", "--shm"};
-  cpl.insert(cpl.end(), offset.begin(), offset.end());
-  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--shm", "--option", "approach_s=0.2", "--option", "hold_s=60"};
-  for (auto* v : {&sim, &cpl, &dev}) v->insert(v->end(), common.begin(), common.end());
+  const auto a = testing::shm_session_args(HAPTREE_SIM_SERVER, HAPTREE_COUPLER, HAPTREE_DEVICE_BRIDGE, hub.url(), suffix);
   {
     // The recorder: every channel of the session's bus into an LCM log, as lcm-logger would.
     bus::Bus bus(hub.url());
-    auto log = std::make_unique<lcm::LogFile>(path, "w");
-    ASSERT_TRUE(log->good());
-    std::mutex mu;
-    int64_t n = 0;
-    bus.subscribe_raw(".*", [&](const void* data, uint32_t size, const std::string& ch) {
-      std::lock_guard<std::mutex> lock(mu);
-      lcm::LogEvent ev;
-      ev.eventnum = n++;
-      ev.timestamp = bus::now_utime();
-      ev.channel = ch;
-      ev.datalen = static_cast<int32_t>(size);
-      ev.data = const_cast<void*>(data);
-      if (log) log->writeEvent(&ev);
-    });
+    testing::LcmLogRecorder log(bus, path);
+    ASSERT_TRUE(log.good());
     bus::HandlerThread handler(bus, 5);
     std::this_thread::sleep_for(200ms);   // the recorder is connected before the session starts
-    const pid_t p_sim = testing::spawn_logged(sim, dir + "shm_replay_sim.log");
-    const pid_t p_cpl = testing::spawn_logged(cpl, dir + "shm_replay_coupler.log");
-    const pid_t p_dev = testing::spawn_logged(dev, dir + "shm_replay_bridge.log");
+    const pid_t p_sim = testing::spawn_logged(a.sim, dir + "shm_replay_sim.log");
+    const pid_t p_cpl = testing::spawn_logged(a.coupler, dir + "shm_replay_coupler.log");
+    const pid_t p_dev = testing::spawn_logged(a.device, dir + "shm_replay_bridge.log");
     ASSERT_GT(p_sim, 0);
     ASSERT_GT(p_cpl, 0);
     ASSERT_GT(p_dev, 0);
@@ -84,8 +60,7 @@ TEST(ShmReplay, RecordedShmSessionReplaysWithDefaults) {
     EXPECT_EQ(stop_and_reap(p_cpl), 0);
     EXPECT_EQ(stop_and_reap(p_sim), 0);
     handler.stop();
-    std::lock_guard<std::mutex> lock(mu);
-    log.reset();
+    log.close();
   }
   hub.stop();
   const std::string cmd = std::string(HAPTREE_REPLAY_COUPLING) + " " + path + " --channel-suffix " + suffix + " 2>&1";
