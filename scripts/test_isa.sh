@@ -8,10 +8,14 @@
 #
 # Usage: bash scripts/test_isa.sh [--configs "generic v3 native"] [--label-regex REGEX]
 #                                 [--targets "T1 T2 ..."] [--numerics] [--build-only] [--jobs N]
+#                                 [--report "SECTIONS"]
 #   --label-regex  run only tests whose CTest labels match (e.g. "unit|oracle|stress")
 #   --targets      build only these targets (default: everything)
-#   --numerics     the numerical suite only: the unit, oracle and stress test programs, labels
-#                  "unit|oracle|stress" (a fraction of the full build on a busy 2-core machine)
+#   --numerics     the numerical suite only: labels "unit|oracle|stress", building every test program
+#                  labelled oracle or stress and every tests/core program, found from the configured
+#                  tree (so tests added later are not silently left out); a fraction of the full build
+#   --report       also build tools/stress_report and run these sections of it (e.g. "isa light ratio
+#                  coaxial welds far") in each configuration: build-<c>/stress_report.md
 # Prints one line per configuration and exits non-zero if any configuration failed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,6 +23,8 @@ configs="generic v3 native"
 labels=""
 build_only=0
 targets=""
+numerics=0
+report=""
 jobs=${HAPTREE_JOBS:-$(nproc)}
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -26,14 +32,10 @@ while [ $# -gt 0 ]; do
     --label-regex) labels="$2"; shift 2 ;;
     --build-only) build_only=1; shift ;;
     --targets) targets="$2"; shift 2 ;;
-    --numerics)
-      targets="core_dca_test core_tree_test core_alloc_test core_adaptive_test core_coupling_test
-               core_integrator_test stress_energy_test stress_far_origin_test stress_singular_test
-               stress_long_chain_test stress_passivity_test stress_adaptive_switching_test
-               stress_origin_test io_urdf_test io_mujoco_test io_fd_cli_test haptree_fd"
-      labels="unit|oracle|stress"; shift ;;
+    --numerics) numerics=1; labels="unit|oracle|stress"; shift ;;
     --jobs) jobs="$2"; shift 2 ;;
-    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    --report) report="$2"; shift 2 ;;
+    -h|--help) sed -n '2,21p' "$0"; exit 0 ;;
     *) echo "test_isa.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -54,7 +56,19 @@ for c in $configs; do
   cmake -S . -B "$dir" -DCMAKE_BUILD_TYPE=Release "${launcher[@]}" "${flags[@]}" \
     > "$dir/test_isa.configure.log" 2>&1 || { cat "$dir/test_isa.configure.log"; exit 1; }
   tgt=()
-  for x in $targets; do tgt+=(--target "$x"); done
+  sel="$targets"
+  if [ "$numerics" = 1 ] && [ -z "$targets" ]; then
+    # haptree_add_test writes <target>_labels.cmake with the target's labels (tests/CMakeLists.txt).
+    # A label-matched test whose program is not built is silently skipped by ctest -L, so build all.
+    sel=$(for f in $(find "$dir/tests" -name '*_labels.cmake' | sort); do
+            n=$(basename "$f" _labels.cmake)
+            if grep -qE 'LABELS "[^"]*(oracle|stress)' "$f" || [[ "$f" == "$dir/tests/core/"* ]]; then
+              echo "$n"; fi; done)
+    [ -n "$sel" ] || { echo "test_isa.sh: no numeric test targets found in $dir/tests" >&2; exit 1; }
+    echo "== $c: targets $(echo $sel)"
+  fi
+  for x in $sel; do tgt+=(--target "$x"); done
+  [ -n "$report" ] && [ ${#tgt[@]} -gt 0 ] && tgt+=(--target stress_report)
   if ! cmake --build "$dir" -j "$jobs" "${tgt[@]}" > "$dir/test_isa.build.log" 2>&1; then
     tail -30 "$dir/test_isa.build.log"
     summary+=("$c: BUILD FAILED (see $dir/test_isa.build.log)")
@@ -69,6 +83,15 @@ for c in $configs; do
   line=$(grep -E "tests passed|tests failed" "$dir/test_isa.ctest.log" | tail -1)
   summary+=("$c ($(grep -m1 -o -- '-march=[^ ]*' "$dir/compile_commands.json" || echo 'no -march')): $r: $line")
   [ "$r" = FAILED ] && grep -E "\(Failed\)|\(Timeout\)|\*\*\*" "$dir/test_isa.ctest.log" | head -20 || true
+  if [ -n "$report" ]; then
+    echo "== $c: stress_report --sections $report"
+    # shellcheck disable=SC2086  # the section list is split on purpose
+    if "$dir/tools/stress_report" --sections $report > "$dir/stress_report.md" 2> "$dir/stress_report.log"; then
+      summary+=("$c: stress_report written to $dir/stress_report.md")
+    else
+      summary+=("$c: stress_report FAILED (see $dir/stress_report.log)"); status=1
+    fi
+  fi
 done
 echo "== summary"
 printf '%s\n' "${summary[@]}"

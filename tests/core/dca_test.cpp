@@ -251,7 +251,8 @@ TEST(FarFromOrigin, TreeAt1e6m) {
   const State st = random_state(*near, 8);
   State stf(*far);
   stf.q = st.q; stf.qd = st.qd; stf.tau = st.tau; stf.f_ext = st.f_ext;
-  EXPECT_LE(rel_err(dca_qdd(*far, stf), dca_qdd(*near, st)), 1e-8);
+  // A translation changes no number the DCA uses (offsets are local): a reordered sum at most.
+  EXPECT_LE(rel_err(dca_qdd(*far, stf), dca_qdd(*near, st)), 1e-14);
 }
 
 TEST(BodyAccelerations, FromLeafHandleForcesMatchOracle) {

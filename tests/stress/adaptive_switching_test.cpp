@@ -2,6 +2,8 @@
 // 2000 steps on the 857-DOF protein-like tree under gravity, every step checked, oracle twice.
 #include <gtest/gtest.h>
 
+#include <cstdio>
+
 #include "tests/stress/adaptive_switching.hpp"
 
 namespace haptree::stress {
@@ -29,9 +31,12 @@ TEST(AdaptiveSwitching, ProteinLike2000StepsEveryStepSwitches) {
   EXPECT_EQ(r.nonfinite_qdd, 0);
   EXPECT_LE(r.min_active, 16);     // the schedule really spans small and large regions
   EXPECT_GE(r.max_active, 500);
-  EXPECT_LT(r.max_energy_gain, 0.01 * r.energy_scale);   // measured 6.7e-4 × scale
+  // Energy: locking only removes energy and the explicit step's gain over 2 s is first order in
+  // dt; 0.01 × the largest possible gravity swing is a physical bound (measured 6.7e-4 × scale).
+  EXPECT_LT(r.max_energy_gain, 0.01 * r.energy_scale);
   EXPECT_EQ(r.oracle_checks, 2);
-  EXPECT_LT(r.worst_oracle_err, 1e-9);                    // measured 3.3e-12
+  EXPECT_LE(r.worst_oracle_ratio, 1.0) << r.worst_oracle_err;   // err ≤ B (adaptive_switching.hpp)
+  std::printf("[ switching ] oracle %.2e, err/B %.2e\n", r.worst_oracle_err, r.worst_oracle_ratio);
 }
 
 TEST(AdaptiveSwitching, CyclicBudgetOnlyChain) {
@@ -54,7 +59,8 @@ TEST(AdaptiveSwitching, CyclicBudgetOnlyChain) {
   EXPECT_EQ(r.max_active, 256);
   EXPECT_LT(r.max_energy_gain, 0.01 * r.energy_scale);
   EXPECT_EQ(r.oracle_checks, 2);
-  EXPECT_LT(r.worst_oracle_err, 1e-9);
+  EXPECT_LE(r.worst_oracle_ratio, 1.0) << r.worst_oracle_err;
+  std::printf("[ switching ] oracle %.2e, err/B %.2e\n", r.worst_oracle_err, r.worst_oracle_ratio);
 }
 
 }  // namespace

@@ -57,7 +57,9 @@ TEST(NearSingular, LightBodiesBetweenNormalLinks) {
 }
 
 // Coaxial joints separated by a rod whose axial inertia is scaled by a = 1 … 1e-6: cond(H) grows
-// ∝ 1/a (8e5 → 8e11) and the error with it (measured ≤ 9e-15 / a).
+// ∝ 1/a (8e5 → 8e11) and the error with it (measured ≤ 9e-15 / a). Tolerance (issue 14.3): the
+// backward-error bound B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp), whose κ(H) carries the
+// 1/a; it replaces a fit to one machine (3e-14 / a, 3× the native measurement).
 TEST(NearSingular, AlignedAxes) {
   for (int e = 0; e >= -6; --e) {
     const double a = std::pow(10.0, e);
@@ -66,8 +68,11 @@ TEST(NearSingular, AlignedAxes) {
     const auto fd = dca(*m, st);
     ASSERT_TRUE(all_finite(fd.qdd)) << a;
     EXPECT_EQ(fd.singular_pivots, 0) << a;
-    const double err = testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd);
-    EXPECT_LE(err, 3e-14 / a) << "axial " << a;
+    const auto orc = testing::oracle_forward_dynamics(*m, st);
+    const double err = testing::rel_err(fd.qdd, orc.qdd);
+    const double B = testing::qdd_error_bound(orc, st, testing::kBoundC);
+    std::printf("[coaxial a=%g] err %.3e, err/B %.3e\n", a, err, err / B);
+    EXPECT_LE(err, B) << "axial " << a;
   }
 }
 
@@ -75,7 +80,9 @@ TEST(NearSingular, AlignedAxes) {
 // system made indefinite by round-off, then a round-off pivot divided by). The symmetric Φ − ZᵀZ
 // assembly keeps those systems positive, and a pivot below 1e-13·trace is dropped (pseudo-inverse)
 // and reported. Measured: 1.0e-6 at a = 1e-8, 8.6e-5 at 1e-10; the mass-ratio chain at r = 1e-12 /
-// 1e12 is finite with O(1) error and its singular pivots reported.
+// 1e12 is finite with O(1) error and its singular pivots reported. No error bound applies here
+// (B = c·n·ε·κ(H)·cancel ≥ 2.6 at κ(H) = 8e13): 1e-2 only tells a finite but meaningless result
+// (O(1), as the pseudo-inverse would give if it dropped a real DOF) from a degraded one.
 TEST(NearSingular, BeyondTheRangeFiniteAndReported) {
   for (double a : {1e-8, 1e-10}) {
     auto m = coaxial_chain(15, a);

@@ -135,24 +135,7 @@ TEST(OriginIndependence, GeneratedModelsTranslatedAndRotated) {
 // fix: 8e-7 against the oracle (fixed ground joints in mobility form left a residual mobility of
 // ε·|Φ| at the far handle); now bit-identical to the tree mounted 0.3 m from the root link.
 TEST(OriginIndependence, BinaryTreeMountedOneKilometreOffAMassiveRootLink) {
-  auto make = [](double mount) {
-    std::mt19937 rng(3);
-    std::uniform_real_distribution<double> u(0, 1);
-    ModelSpec s;
-    s.bodies.push_back({0, JointType::kFixed, Vec3::Zero(), Mat3::Identity(), Vec3::UnitZ(), 1000,
-                        Vec3(0.05, 0, 0), Mat3(Vec3(100, 120, 140).asDiagonal())});
-    for (int k = 1; k <= 127; ++k) {
-      const JointType t =
-          k == 1 || u(rng) < 0.1 ? JointType::kFixed : JointType::kRevolute;
-      const int parent = k == 1 ? 1 : k / 2 + 1;
-      const double m = 0.5 + 1.5 * u(rng);
-      s.bodies.push_back({parent, t, k == 1 ? mount * Vec3(1, 2, 3).normalized() : Vec3(0.3, 0, 0),
-                          Mat3(Eigen::AngleAxisd(k % 2 ? 0.5 : -0.5, Vec3::UnitZ())),
-                          random_direction(rng), m, Vec3(0.15, 0.01, 0),
-                          Mat3((m / 12 * Vec3(0.0032, 0.0916, 0.0916)).asDiagonal())});
-    }
-    return s;
-  };
+  const auto make = mounted_binary_tree;   // tests/stress/random_models.hpp
   const auto near = build_model(make(0.3));
   const State st = testing::random_state(*near, 5);
   Data d0(*near);

@@ -181,4 +181,26 @@ inline State rotated_state(const Model& m, const State& st, const Mat3& Rw) {
   return r;
 }
 
+// The issue's model (issue 14.1): a binary tree of 127 joints, ≈ 10 % of them fixed, mounted
+// `mount` metres from a 1000 kg root link (itself fixed to the ground) through a fixed joint.
+// Shared by OriginIndependence.BinaryTreeMountedOneKilometreOffAMassiveRootLink and
+// stress_report --sections welds.
+inline ModelSpec mounted_binary_tree(double mount) {
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(0, 1);
+  ModelSpec s;
+  s.bodies.push_back({0, JointType::kFixed, Vec3::Zero(), Mat3::Identity(), Vec3::UnitZ(), 1000,
+                      Vec3(0.05, 0, 0), Mat3(Vec3(100, 120, 140).asDiagonal())});
+  for (int k = 1; k <= 127; ++k) {
+    const JointType t = k == 1 || u(rng) < 0.1 ? JointType::kFixed : JointType::kRevolute;
+    const int parent = k == 1 ? 1 : k / 2 + 1;
+    const double m = 0.5 + 1.5 * u(rng);
+    s.bodies.push_back({parent, t, k == 1 ? mount * Vec3(1, 2, 3).normalized() : Vec3(0.3, 0, 0),
+                        Mat3(Eigen::AngleAxisd(k % 2 ? 0.5 : -0.5, Vec3::UnitZ())),
+                        random_direction(rng), m, Vec3(0.15, 0.01, 0),
+                        Mat3((m / 12 * Vec3(0.0032, 0.0916, 0.0916)).asDiagonal())});
+  }
+  return s;
+}
+
 }  // namespace haptree::stress
