@@ -428,6 +428,8 @@ bool Coupler::iterate(double now) {
       grab_seq_ = pose_.grab_seq;
       body_ = body;
       grab_point_ = x_h;
+      grab_old_version_ = snap.version;
+      grab_old_instance_ = snap.source_instance;
       send_user_force = true;
     }
   } else if (!button && grabbing_) {
@@ -443,7 +445,8 @@ bool Coupler::iterate(double now) {
     // The snapshot's age counts once coefficients for this grab are in use. Before the first one arrives
     // (the server has not seen the grab yet) the force is zero anyway: that is not a stale input, and
     // counting it made every grab a watchdog trip with a 100 ms ramp-in.
-    if (snap.version >= 0 && snap.grabs.size() == 1 && snap.grabs[0].body == body_) {
+    const bool for_this_grab = snap.source_instance != grab_old_instance_ || snap.version > grab_old_version_;
+    if (snap.version >= 0 && for_this_grab && snap.grabs.size() == 1 && snap.grabs[0].body == body_) {
       const double snap_t = snapshot_recv_s_.load(std::memory_order_acquire);
       age = std::max(age, snap_t >= 0 ? now - snap_t : 1e9);
       CouplingInputs in{x_dev, v_dev};

@@ -139,6 +139,10 @@ class Coupler {
   int32_t grab_seq_ = 0;               // device's press counter at our grab
   int body_ = -1;
   Vec3 grab_point_ = Vec3::Zero();
+  // The snapshot in hand at the grab edge: it belongs to an earlier grab (the server sends snapshots only
+  // while it holds a grab), so it is not used for this one, even for the same body (its grab point is the
+  // old one: a spring force up to the clamp at once instead of zero).
+  int64_t grab_old_version_ = -1, grab_old_instance_ = 0;
   int64_t user_seq_ = 0, feedback_seq_ = 0;
   double next_user_force_s_ = 0;
   lcmt_feedback fb_{};

@@ -118,7 +118,19 @@ struct DeviceCounts {
   double max_f = 0, max_jump = 0, max_ghost = 0;
   int64_t feedback_steps = 0;   // FEEDBACK changes above the limit before the device's rate limit (information)
   double max_feedback_step = 0;
+  // Those steps by cause, the first that applies (docs/chaos.md): the previous FEEDBACK was a killed
+  // coupler's (the bridge had timed it out), a grab whose first snapshot is stale (that of an earlier grab
+  // of the same body), a new sim_server or device_bridge within kRecentS, another grab edge (snapshot
+  // version -1 on one side), the watchdog (its ramp-down takes 5 ms), a snapshot burst (the version moved
+  // by more than 3 within the tick: the server catching up), a late monitor tick, or none of these.
+  enum Cause { kCoupler, kOldSnapshot, kServer, kBridge, kGrabEdge, kWatchdog, kBurst, kLateTick, kOther, kCauses };
+  static constexpr double kRecentS = 0.2;
+  int64_t step_count[kCauses] = {};
+  double step_max[kCauses] = {};
 };
+constexpr const char* kCauseName[DeviceCounts::kCauses] = {
+    "across a coupler restart", "grab on a stale snapshot", "new sim_server", "new device_bridge", "grab on/off",
+    "watchdog ramp", "snapshot burst", "late monitor tick", "other"};
 
 // Byte offsets of the header every haptree message starts with (LCM: 8-byte type hash, then the fields in
 // order, big-endian): schema_version int32 at 8, utime int64 at 12, instance_id int64 at 20.
@@ -157,6 +169,7 @@ int main(int argc, char** argv) {
   double duration_s = 600, kill_min_s = 2, kill_max_s = 5, pause_min_s = 0.2, pause_max_s = 1.0;
   double burst_min_s = 0.5, burst_max_s = 2.0, jump_n = 0, stale_after_s = 0.05, max_force_n = 3.0;
   int burst_messages = 40, n = 32;
+  bool verbose_steps = false;
   uint64_t seed = 0;
   std::string bin_dir, log_dir, replay_exe;
   app.add_option("--duration-s", duration_s, "length of the session, s")->check(CLI::Range(1.0, 1e6))->capture_default_str();
@@ -170,6 +183,7 @@ int main(int argc, char** argv) {
   app.add_option("--jump-n", jump_n, "largest allowed change of the rendered force between two 1 ms device ticks, N; 0: the device_bridge's "
                  "own rate limit (0.6 N per tick for the 3 N clamp: docs/network_faults.md) "
                  "(a drop to exactly zero, the fail-safe action, is allowed and counted apart)")->check(CLI::Range(0.0, 1e3))->capture_default_str();
+  app.add_flag("--show-steps", verbose_steps, "print each FEEDBACK step above --jump-n (the first 200) with its cause");
   app.add_option("--n", n, "bodies of the protein_like scene")->check(CLI::Range(8, 4096))->capture_default_str();
   app.add_option("--seed", seed, "random seed (0: from the clock; printed)");
   app.add_option("--bin-dir", bin_dir, "directory of sim_server, coupler, device_bridge, replay_coupling (default: the build tree)");
@@ -304,6 +318,14 @@ int main(int argc, char** argv) {
     haptree::lcmt_feedback fb{};
     Vec3 last = Vec3::Zero(), prev_rendered = Vec3::Zero(), prev_feedback = Vec3::Zero();
     double last_new_s = -1;
+    // For the cause of a FEEDBACK step: the previous FEEDBACK's fields, the newest nonzero instance ids and
+    // when each last changed, the previous tick's time.
+    haptree::lcmt_feedback prev_fb{};
+    prev_fb.snapshot_version = -1;
+    int64_t inst[3] = {0, 0, 0};   // coupler, sim_server (snapshot), device_bridge (device state)
+    double inst_changed_s[3] = {-1e9, -1e9, -1e9};
+    double prev_tick_s = -1;
+    int other_shown = 0;
     auto next = Clock::now();
     while (!monitor_stop.load()) {
       next += std::chrono::milliseconds(1);
@@ -313,6 +335,12 @@ int main(int argc, char** argv) {
         ++dc.feedbacks;
         last = Vec3(fb.force_n[0], fb.force_n[1], fb.force_n[2]);
         last_new_s = t;
+        const int64_t ids[3] = {fb.instance_id, fb.snapshot_instance_id, fb.echo_device_instance_id};
+        for (int k = 0; k < 3; ++k)
+          if (ids[k] != 0 && ids[k] != inst[k]) {
+            if (inst[k] != 0) inst_changed_s[k] = t;
+            inst[k] = ids[k];
+          }
         for (double v : fb.torque_nm) dc.nonfinite += !std::isfinite(v);
       }
       if (!last.allFinite()) ++dc.nonfinite;
@@ -320,8 +348,33 @@ int main(int argc, char** argv) {
       if (fb_step > jump_n) {
         ++dc.feedback_steps;
         dc.max_feedback_step = std::max(dc.max_feedback_step, fb_step);
+        int c = DeviceCounts::kOther;
+        if (fb.instance_id != prev_fb.instance_id) c = DeviceCounts::kCoupler;
+        else if (prev_fb.snapshot_version < 0 && fb.snapshot_version >= 0 && (fb.flags & haptree::lcmt_feedback::FLAG_STALE))
+          c = DeviceCounts::kOldSnapshot;
+        else if (t - inst_changed_s[1] <= DeviceCounts::kRecentS) c = DeviceCounts::kServer;
+        else if (t - inst_changed_s[2] <= DeviceCounts::kRecentS) c = DeviceCounts::kBridge;
+        else if ((fb.snapshot_version < 0) != (prev_fb.snapshot_version < 0)) c = DeviceCounts::kGrabEdge;
+        else if ((fb.flags | prev_fb.flags) & haptree::lcmt_feedback::FLAG_WATCHDOG) c = DeviceCounts::kWatchdog;
+        else if (fb.snapshot_instance_id == prev_fb.snapshot_instance_id && fb.snapshot_version - prev_fb.snapshot_version > 3)
+          c = DeviceCounts::kBurst;   // 3: the 1 kHz server moves 1-2 versions per 1 ms tick in real time
+        else if (prev_tick_s >= 0 && t - prev_tick_s > 2e-3) c = DeviceCounts::kLateTick;   // > 2 monitor ticks
+        ++dc.step_count[c];
+        dc.step_max[c] = std::max(dc.step_max[c], fb_step);
+        if (verbose_steps && other_shown < 200) {   // for diagnosis: what a step looks like
+          ++other_shown;
+          std::fprintf(stderr, "chaos_soak: FEEDBACK step (%s) %.3f N at %.3f s (tick %.2f ms; %.0f %.0f %.0f ms since new "
+                       "coupler/server/bridge): [%.3f %.3f %.3f] -> [%.3f %.3f %.3f], "
+                       "version %lld -> %lld, flags %d -> %d, seq %lld -> %lld\n", kCauseName[c], fb_step, t, 1e3 * (t - prev_tick_s),
+                       1e3 * (t - inst_changed_s[0]), 1e3 * (t - inst_changed_s[1]), 1e3 * (t - inst_changed_s[2]),
+                       prev_feedback.x(), prev_feedback.y(), prev_feedback.z(), last.x(), last.y(), last.z(),
+                       static_cast<long long>(prev_fb.snapshot_version), static_cast<long long>(fb.snapshot_version),
+                       prev_fb.flags, fb.flags, static_cast<long long>(prev_fb.seq), static_cast<long long>(fb.seq));
+        }
       }
       prev_feedback = last;
+      prev_fb = fb;
+      prev_tick_s = t;
       Vec3 f = renderer.render(t, last_new_s >= 0 ? t - last_new_s : 1e9, last);
       ++dc.ticks;
       if (!f.allFinite()) {
@@ -570,6 +623,10 @@ int main(int argc, char** argv) {
               static_cast<long long>(dc.ticks), static_cast<long long>(dc.feedbacks), static_cast<long long>(dc.nonzero_ticks),
               dc.max_f, static_cast<long long>(dc.drops_to_zero), static_cast<long long>(dc.feedback_steps), jump_n,
               dc.max_feedback_step);
+  std::printf("FEEDBACK steps by cause:");
+  for (int c = 0; c < DeviceCounts::kCauses; ++c)
+    std::printf("%s %s %lld (max %.2f N)", c ? ";" : "", kCauseName[c], static_cast<long long>(dc.step_count[c]), dc.step_max[c]);
+  std::printf("\n");
   std::printf("%s", replay_out.c_str());
   struct Row {
     const char* what;

@@ -318,7 +318,7 @@ struct CouplerRig {
     handler = std::make_unique<bus::HandlerThread>(bus, 2);
     snap_thread = std::thread([this] {
       for (int64_t v = 1; !stop; ++v) {
-        srv.send(7007, v);
+        if (serving) srv.send(7007, v);
         std::this_thread::sleep_for(1ms);
       }
     });
@@ -338,9 +338,66 @@ struct CouplerRig {
   std::mutex mu;
   std::vector<lcmt_user_force> forces;
   std::unique_ptr<bus::HandlerThread> handler;
-  std::atomic<bool> stop{false};
+  std::atomic<bool> stop{false}, serving{true};   // serving: the fake server sends snapshots (it holds a grab)
   std::thread snap_thread, loop;
 };
+
+// Defect found by the chaos soak (docs/chaos.md, "grab on a stale snapshot"): after a release the server
+// sends no snapshots, so the coupler still holds the last one of the old grab. A new grab of the same body
+// elsewhere used it with the old grab point: a spring force at once (here the 3 N clamp) instead of zero,
+// a step of up to the clamp in FEEDBACK until the watchdog took it away 5 ms later. Now a grab waits for a
+// snapshot newer than the one in hand at its edge; until then its force is zero.
+TEST(Failsafe, ANewGrabDoesNotUseTheSnapshotOfTheOldOne) {
+  CouplerRig rig;
+  std::mutex fb_mu;
+  std::vector<lcmt_feedback> fbs;
+  rig.bus.subscribe<lcmt_feedback>(bus::channel::feedback(0), [&](const lcmt_feedback& m, const std::string&) {
+    std::lock_guard<std::mutex> l(fb_mu);
+    fbs.push_back(m);
+  });
+  FakeDevice dev(rig.bus, 8008);
+  std::atomic<double> x{0.0};
+  std::atomic<int32_t> buttons{1};
+  std::atomic<bool> dev_stop{false};
+  std::thread dev_thread([&] {
+    while (!dev_stop) {
+      dev.publish_one(8008, x.load(), buttons.load());
+      std::this_thread::sleep_for(1ms);
+    }
+  });
+  rig.start();
+  std::this_thread::sleep_for(300ms);   // grabbed at the snapshot's grab point: zero force, ramped in
+  buttons = 0;                          // release: the server stops sending snapshots
+  std::this_thread::sleep_for(50ms);
+  rig.serving = false;
+  std::this_thread::sleep_for(50ms);
+  x = 0.05;                             // 0.5 scene units away: k_s 20 x 0.5 x 0.5 N/unit = 5 N > clamp 3 N
+  std::this_thread::sleep_for(20ms);
+  size_t at_press = 0;
+  {
+    std::lock_guard<std::mutex> l(fb_mu);
+    at_press = fbs.size();
+  }
+  buttons = 1;                          // a new grab of body 8 (--grab-body) at the new device point
+  std::this_thread::sleep_for(100ms);   // no snapshot for it yet: its force must stay zero
+  dev_stop = true;
+  dev_thread.join();
+  rig.finish();
+  double fmax = 0;
+  int64_t with_version = 0, after = 0;
+  {
+    std::lock_guard<std::mutex> l(fb_mu);
+    for (size_t i = at_press; i < fbs.size(); ++i, ++after) {
+      fmax = std::max(fmax, Vec3(fbs[i].force_n[0], fbs[i].force_n[1], fbs[i].force_n[2]).norm());
+      with_version += fbs[i].snapshot_version >= 0;
+    }
+  }
+  std::printf("after the new grab: %lld FEEDBACK, %lld naming a snapshot, max |f| %.3g N\n",
+              static_cast<long long>(after), static_cast<long long>(with_version), fmax);
+  EXPECT_GT(after, 0);
+  EXPECT_EQ(with_version, 0) << "the new grab used the old grab's snapshot";
+  EXPECT_EQ(fmax, 0.0);   // exactly: no snapshot, no force
+}
 
 // Defect 5 (coupler side): a device position of 1e300 (or NaN) is refused rather than turned into a
 // 2e302 user force, and a large but plausible displacement gives at most the scene-side limit
