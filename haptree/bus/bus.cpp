@@ -3,10 +3,12 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstdio>
 #include <cstring>
 #include <cstdlib>
@@ -195,9 +197,23 @@ void Bus::add(std::unique_ptr<SubscriptionBase> sub) {
   subs_.push_back(std::move(sub));
 }
 
+// lcm_handle_timeout() itself is select() + lcm_handle(), but FD_SET on the provider's fd: the tcpq
+// provider's fd is -1 between a lost hub connection and its reconnect, and glibc's fortified FD_SET
+// aborts the process on it ("bit out of range 0 - FD_SETSIZE"). A launcher SIGKILLed with its hub made
+// the device_bridge abort before it could unlink its shared-memory segments. poll() has neither
+// limit (it ignores a negative fd); the result codes are lcm_handle_timeout's.
 int Bus::handle_timeout(int timeout_ms) noexcept {
   try {
-    return lcm_->handleTimeout(timeout_ms);
+    const int fd = lcm_->getFileno();
+    if (fd < 0) {
+      if (timeout_ms > 0) std::this_thread::sleep_for(std::chrono::milliseconds(timeout_ms));
+      return -1;
+    }
+    pollfd p{fd, POLLIN, 0};
+    const int r = ::poll(&p, 1, timeout_ms);
+    if (r < 0) return errno == EINTR ? 0 : -1;
+    if (r == 0) return 0;
+    return lcm_->handle() == 0 ? 1 : -1;
   } catch (...) {
     return -1;
   }
