@@ -175,8 +175,11 @@ TEST(Embedded, WatchdogZeroesForceWhenServerStopsAndRecoversWithNewServer) {
   const int64_t last_snapshot_utime = s.couplers[0]->counters().last_snapshot_utime.load();
   std::this_thread::sleep_for(200ms);
   {
-    // Every feedback stamped more than stale (5 ms) + ramp (5 ms) + 0.5 ms margin after the last snapshot
-    // was accepted is exactly zero (coupler clock).
+    // Every feedback stamped more than stale (5 ms) + ramp (5 ms) + 5 ms after the last snapshot was
+    // accepted is exactly zero (coupler clock). The watchdog acts on the loop's clock at the start of an
+    // iteration, the stamp is taken at publish: a loop preempted in between on a loaded 2-core machine
+    // stamped a force still on its ramp 1 ms late (0.51 N at 10.6 ms, falling 0.54 N/ms), so the margin
+    // is a scheduling delay, not the watchdog's: 5 ms (without a watchdog the force never drops).
     std::lock_guard<std::mutex> lock(s.logs[0].mu);
     int64_t checked = 0;
     double first_zero_ms = -1;
@@ -184,7 +187,7 @@ TEST(Embedded, WatchdogZeroesForceWhenServerStopsAndRecoversWithNewServer) {
       const double dt_ms = 1e-3 * static_cast<double>(f.utime - last_snapshot_utime);
       const double n = Vec3(f.force_n[0], f.force_n[1], f.force_n[2]).norm();
       if (dt_ms > 0 && n == 0 && first_zero_ms < 0) first_zero_ms = dt_ms;
-      if (dt_ms > 10.5) {
+      if (dt_ms > 15.0) {
         EXPECT_EQ(n, 0.0) << "at " << dt_ms << " ms after the last snapshot";
         EXPECT_TRUE(f.flags & lcmt_feedback::FLAG_WATCHDOG);
         ++checked;
