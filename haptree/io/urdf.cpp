@@ -15,6 +15,35 @@ namespace haptree::io {
 
 namespace {
 
+// Offset of the first byte that is not well-formed UTF-8 (RFC 3629), or npos. TinyXML 2.6 skips a
+// multibyte character by its lead byte's length without looking at what follows, so a lead byte at the
+// end of the text made it read past the terminator (heap overflow found by the fuzz smoke run).
+std::string fmt_hex(unsigned char c) {
+  const char* d = "0123456789abcdef";
+  return {d[c >> 4], d[c & 15]};
+}
+
+size_t utf8_error(const std::string& s) {
+  const auto* p = reinterpret_cast<const unsigned char*>(s.data());
+  const size_t n = s.size();
+  for (size_t i = 0; i < n;) {
+    const unsigned c = p[i];
+    if (c < 0x80) { ++i; continue; }
+    size_t len = 0;
+    unsigned lo = 0x80, hi = 0xBF;   // allowed range of the second byte
+    if (c >= 0xC2 && c <= 0xDF) len = 2;
+    else if (c >= 0xE0 && c <= 0xEF) { len = 3; if (c == 0xE0) lo = 0xA0; if (c == 0xED) hi = 0x9F; }
+    else if (c >= 0xF0 && c <= 0xF4) { len = 4; if (c == 0xF0) lo = 0x90; if (c == 0xF4) hi = 0x8F; }
+    else return i;
+    if (i + len > n || p[i + 1] < lo || p[i + 1] > hi) return i;
+    for (size_t k = 2; k < len; ++k)
+      if (p[i + k] < 0x80 || p[i + k] > 0xBF) return i;
+    i += len;
+  }
+  return std::string::npos;
+}
+
+
 // Captures urdfdom's console_bridge messages so a parse failure becomes one exception line
 // instead of text on stderr.
 class CaptureHandler : public console_bridge::OutputHandler {
@@ -284,6 +313,9 @@ void check_joint_tree(const TiXmlDocument& doc, const std::string& source) {
 
 std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::string& source,
                                         const UrdfOptions& options) {
+  if (const size_t bad = utf8_error(xml); bad != std::string::npos)
+    throw UrdfError(source + ": not UTF-8 text (byte " + std::to_string(bad) + " is 0x" +
+                    fmt_hex(static_cast<unsigned char>(xml[bad])) + "); a URDF is XML in UTF-8");
   {
     // XML well-formedness first, so the message carries the line and column.
     TiXmlDocument doc;

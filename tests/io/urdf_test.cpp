@@ -308,3 +308,26 @@ TEST(StateJson, ConventionsAndErrors) {
 
 }  // namespace
 }  // namespace haptree
+
+// TinyXML 2.6 skips a multibyte character by its lead byte without checking what follows: a text ending
+// in a lead byte made it read past the string (heap overflow, fuzz smoke run). The text is refused
+// before any XML parsing, and well-formed UTF-8 (names, comments) still loads.
+TEST(UrdfInput, TextThatIsNotUtf8IsRefusedBeforeTinyXmlReadsIt) {
+  auto msg = [](const std::string& xml) {
+    try {
+      haptree::io::parse_urdf(xml, "t.urdf");
+    } catch (const haptree::io::UrdfError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  const std::string ok = "<robot name='r\xC3\xA9'><!-- \xE2\x82\xAC --><link name='a'><inertial><mass value='1'/>"
+                         "<inertia ixx='1' ixy='0' ixz='0' iyy='1' iyz='0' izz='1'/></inertial></link></robot>";
+  EXPECT_EQ(msg(ok).find("not UTF-8"), std::string::npos) << msg(ok);
+  EXPECT_NE(msg("<robot name='r'><link name='a\xE0\xE0").find("t.urdf: not UTF-8 text (byte 29 is 0xe0)"),
+            std::string::npos)
+      << msg("<robot name='r'><link name='a\xE0\xE0");
+  EXPECT_NE(msg(std::string("<robot name='r'>\xC0\xAF</robot>")).find("not UTF-8"), std::string::npos);   // overlong
+  EXPECT_NE(msg(std::string("<robot name='r'>\xED\xA0\x80</robot>")).find("not UTF-8"), std::string::npos);   // surrogate
+  EXPECT_NE(msg(std::string("<robot>\xF4\x90\x80\x80</robot>")).find("not UTF-8"), std::string::npos);   // > U+10FFFF
+}
