@@ -56,6 +56,12 @@ Data::Data(const Model& model) {
   beta.assign(nn, Vec6::Zero());
   taut.assign(nn, Vec6::Zero());
   qdd = Eigen::VectorXd::Zero(model.nv);
+  refine_qdd = Eigen::VectorXd::Zero(model.nv);
+  refine_r = Eigen::VectorXd::Zero(model.nv);
+  refine_a.assign(nb, Vec6::Zero());
+  refine_f.assign(nb, Vec6::Zero());
+  refine_p.assign(nb, Vec6::Zero());
+  refine_c.assign(nb, Vec6::Zero());
   const int nc = model.ncluster_nodes;
   if (nc > 0) cluster_offset.assign(nb, Vec3::Zero());
   if (nc > 0) cluster_offset_lo.assign(nb, Vec3::Zero());

@@ -87,6 +87,19 @@ struct Data {
 
   Eigen::VectorXd qdd;          // (nv) output of forward_dynamics
 
+  // One step of iterative refinement in forward_dynamics (issue 14.2; off by default): the residual
+  // r = τ − ID(q, q̇, q̈) by inverse dynamics at the handle points, then δ = H⁻¹ r by a second
+  // bottom-up/top-down pass with no bias (q̇ = 0, no gravity, no f_ext, τ = r) on the same
+  // kinematics, and q̈ += δ. The mobility-form assembly Φ_C = Φ_L − Φ_L W Φ_L is not backward
+  // stable next to light bodies; inverse dynamics is, so one step recovers the digits it loses.
+  // About twice the cost of the plain pass. When on, the node coefficients b, β, f, ca, cb (and
+  // with them the coupling snapshot's inputs) hold the correction pass's values afterwards; p_bias
+  // and c hold the state's.
+  bool refine = false;
+  Eigen::VectorXd refine_qdd, refine_r;   // (nv) first solve, residual
+  std::vector<Vec6> refine_a, refine_f;   // (nbodies) inverse dynamics: accelerations, forces
+  std::vector<Vec6> refine_p, refine_c;   // (nbodies) saved p_bias, c
+
   // Threads of forward_dynamics' passes and their schedule (set_dca_threads; issue 13.4). 1 (the
   // default) runs everything on the calling thread.
   int dca_threads = 1;

@@ -1260,15 +1260,76 @@ int set_dca_threads(const Model& m, Data& d, int threads) {
   return d.dca_threads;
 }
 
+namespace {
+
+// r = τ − ID(q, q̇, q̈) (RNEA at the handle points r_k, world axes; needs body_dynamics_terms):
+// a_k = shift(a_parent, d_k) + S_k q̈_k + c_k, f_k = I_k a_k − p_bias_k + Σ children's f moved
+// to r_k, τ_k = S_kᵀ f_k (the joint force of τ is D τ with D = S, orthonormal columns). The
+// ground does not accelerate: gravity is in p_bias as a force.
+void inverse_dynamics_residual(const Model& m, Data& d, const Eigen::VectorXd& tau,
+                               const Eigen::VectorXd& qdd) {
+  d.refine_a[0].setZero();
+  for (int k = 1; k < m.nbodies; ++k) {
+    d.refine_a[k] = shift_motion(d.refine_a[m.parent[k]], d.d[k]) + joint_velocity(m, d, k, qdd) +
+                    d.c[k];
+    d.refine_f[k] = d.I[k] * d.refine_a[k] - d.p_bias[k];
+  }
+  for (int k = m.nbodies - 1; k >= 1; --k) {
+    const Vec6& f = d.refine_f[k];
+    const int a = m.v_adr[k];
+    switch (m.joint_type[k]) {
+      case JointType::kRevolute:
+      case JointType::kPrismatic: d.refine_r(a) = tau(a) - d.S[k].dot(f); break;
+      case JointType::kSpherical:
+        d.refine_r.segment<3>(a) = tau.segment<3>(a) - d.R[k].transpose() * f.head<3>();
+        break;
+      case JointType::kFree:
+        d.refine_r.segment<3>(a) = tau.segment<3>(a) - d.R[k].transpose() * f.head<3>();
+        d.refine_r.segment<3>(a + 3) = tau.segment<3>(a + 3) - d.R[k].transpose() * f.tail<3>();
+        break;
+      case JointType::kFixed: break;
+    }
+    const int p = m.parent[k];
+    if (p > 0) d.refine_f[p] += shift_force(f, -d.d[k]);
+  }
+}
+
+// One step of iterative refinement (Data::refine): q̈ += H⁻¹ r with H⁻¹ applied by a pass with
+// no bias terms (p_bias = 0, c = 0, τ = r) over the kinematics and inertias already computed.
+void refine_step(const Model& m, Data& d, const State& st) {
+  d.refine_qdd = d.qdd;
+  inverse_dynamics_residual(m, d, st.tau, d.refine_qdd);
+  for (int k = 0; k < m.nbodies; ++k) {
+    d.refine_p[k] = d.p_bias[k];
+    d.refine_c[k] = d.c[k];
+    d.p_bias[k].setZero();
+    d.c[k].setZero();
+  }
+  const auto& t = m.tree;
+  cluster_offsets(m, d);
+  for (int node = t.nnodes() - 1; node >= 0; --node) dca_bottom_up_node(m, d, node, d.refine_r);
+  const Diagnostics keep = d.diag;
+  dca_top_down(m, d);
+  d.diag.nodes_bottom_up = keep.nodes_bottom_up;
+  d.qdd += d.refine_qdd;
+  for (int k = 0; k < m.nbodies; ++k) {
+    d.p_bias[k] = d.refine_p[k];
+    d.c[k] = d.refine_c[k];
+  }
+}
+
+}  // namespace
+
 const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st) noexcept {
   forward_kinematics(m, d, st.q);
   if (d.dca_threads > 1) {
     parallel_passes(m, d, st);
-    return d.qdd;
+  } else {
+    body_dynamics_terms(m, d, st);
+    dca_bottom_up(m, d, st);
+    dca_top_down(m, d);
   }
-  body_dynamics_terms(m, d, st);
-  dca_bottom_up(m, d, st);
-  dca_top_down(m, d);
+  if (d.refine) refine_step(m, d, st);   // serial even when the passes above ran in parallel
   return d.qdd;
 }
 

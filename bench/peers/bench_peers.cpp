@@ -41,6 +41,7 @@ std::map<std::string, Factory> factories() {
   std::map<std::string, Factory> f;
   f["haptree"] = peers::make_haptree_engine;
   f["haptree_auto"] = peers::make_haptree_auto_engine;
+  f["haptree_refine"] = peers::make_haptree_refine_engine;
 #ifdef HAPTREE_PEER_MUJOCO
   f["mujoco"] = [](const Model& m) { return peers::make_mujoco_engine(m, false); };
   f["mujoco_diaginertia"] = [](const Model& m) { return peers::make_mujoco_engine(m, true); };
@@ -261,8 +262,9 @@ int main(int argc, char** argv) {
   // fullinertia costs accuracy.
   const bool diag_explicit =
       std::find(engines.begin(), engines.end(), "mujoco_diaginertia") != engines.end();
-  if (engines.empty())
-    for (auto& [name, f] : all) engines.push_back(name);
+  if (engines.empty())   // haptree_refine (Data::refine, issue 14.2) only when asked for
+    for (auto& [name, f] : all)
+      if (name != "haptree_refine") engines.push_back(name);
   for (const char* p : {"mujoco", "simbody", "bullet"})
     if (!all.count(p)) std::printf("peer %s: not compiled in (library not found at build time), skipped\n", p);
 

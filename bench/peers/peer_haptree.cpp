@@ -9,10 +9,16 @@ namespace {
 class HaptreeEngine final : public PeerEngine {
  public:
   // threads: set_dca_threads (1 = serial; 0 = automatic, "haptree_auto").
-  HaptreeEngine(const Model& m, int threads) : model_(m), data_(m), threads_(threads) {
+  // refine: Data::refine (one step of iterative refinement, issue 14.2; "haptree_refine").
+  HaptreeEngine(const Model& m, int threads, bool refine = false)
+      : model_(m), data_(m), threads_(threads) {
     set_dca_threads(m, data_, threads);
+    data_.refine = refine;
   }
-  std::string name() const override { return threads_ == 1 ? "haptree" : "haptree_auto"; }
+  std::string name() const override {
+    if (data_.refine) return "haptree_refine";
+    return threads_ == 1 ? "haptree" : "haptree_auto";
+  }
   std::string timed_call() const override {
     return "haptree::forward_dynamics (kinematics + DCA bottom-up + top-down)";
   }
@@ -32,6 +38,9 @@ std::unique_ptr<PeerEngine> make_haptree_engine(const Model& model) {
 }
 std::unique_ptr<PeerEngine> make_haptree_auto_engine(const Model& model) {
   return std::make_unique<HaptreeEngine>(model, 0);
+}
+std::unique_ptr<PeerEngine> make_haptree_refine_engine(const Model& model) {
+  return std::make_unique<HaptreeEngine>(model, 1, true);
 }
 
 std::vector<std::string> compiled_peers() {

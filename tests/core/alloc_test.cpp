@@ -24,14 +24,17 @@ TEST(Allocation, ForwardDynamicsAndIntegrationAllocateNothing) {
     if (std::string(scene) == "star") o.build.max_children = 4;   // inertia-form hub nodes
     auto model = make_scene(scene, o);
     State st(*model);
-    Data d(*model);
-    forward_dynamics(*model, d, st);   // warm-up
-    const long before = haptree::testing::allocation_count();
-    for (int i = 0; i < 5; ++i) {
-      forward_dynamics(*model, d, st);
-      integrate(*model, st.q, st.qd, d.qdd, 1e-3);
+    for (bool refine : {false, true}) {   // Data::refine: the refinement step's buffers too
+      Data d(*model);
+      d.refine = refine;
+      forward_dynamics(*model, d, st);   // warm-up
+      const long before = haptree::testing::allocation_count();
+      for (int i = 0; i < 5; ++i) {
+        forward_dynamics(*model, d, st);
+        integrate(*model, st.q, st.qd, d.qdd, 1e-3);
+      }
+      EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene << " refine " << refine;
     }
-    EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene;
   }
 }
 
