@@ -273,42 +273,6 @@ TEST(RealtimeApply, IoThreadNextToTheLoopPriority) {
   }
 }
 
-// A housekeeping thread started by a pinned SCHED_FIFO loop (the coupler's) is inherited onto the loop's CPU
-// and priority; set_background_thread gives it SCHED_OTHER and the CPUs the process had before the pinning.
-TEST(RealtimeApply, BackgroundThreadLeavesTheLoopsPolicyAndCpu) {
-  cpu_set_t set;
-  CPU_ZERO(&set);
-  ASSERT_EQ(sched_getaffinity(0, sizeof set, &set), 0);
-  int first = -1;
-  for (int c = CPU_SETSIZE - 1; c >= 0; --c)
-    if (CPU_ISSET(c, &set)) first = c;
-  const int count = CPU_COUNT(&set);
-  const std::string out = in_child([first] {
-    RealtimeOptions o;
-    o.cpus = {first};
-    o.sched_fifo = 10;   // refused without privileges: SCHED_OTHER either way afterwards
-    const RealtimeReport r = apply_realtime(o);
-    std::string s;
-    std::thread t([&] {   // never runs under SCHED_FIFO for long: it demotes itself first
-      const std::string w = set_background_thread();
-      int policy = -1;
-      sched_param p{};
-      pthread_getschedparam(pthread_self(), &policy, &p);
-      cpu_set_t now;
-      CPU_ZERO(&now);
-      sched_getaffinity(0, sizeof now, &now);
-      s = "[" + w + "] policy=" + std::to_string(policy) + " count=" + std::to_string(CPU_COUNT(&now));
-    });
-    t.join();
-    cpu_set_t loop;
-    CPU_ZERO(&loop);
-    sched_getaffinity(0, sizeof loop, &loop);
-    return s + " loop_count=" + std::to_string(CPU_COUNT(&loop)) + " loop_fifo=" + std::to_string(r.fifo);
-  });
-  EXPECT_NE(out.find("[] policy=" + std::to_string(SCHED_OTHER) + " count=" + std::to_string(count) + " loop_count=1"),
-            std::string::npos) << out;
-}
-
 TEST(RealtimeApply, BadPriorityRefusedInWords) {
   RealtimeOptions o;
   o.sched_fifo = 1000;   // the CLI refuses it; the library says why too
