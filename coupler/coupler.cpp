@@ -2,12 +2,9 @@
 
 #include <spdlog/spdlog.h>
 
-#include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <condition_variable>
 #include <limits>
-#include <mutex>
 #include <stdexcept>
 #include <random>
 #include <thread>
@@ -15,7 +12,6 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/delivery.hpp"
 #include "haptree/bus/pacing.hpp"
-#include "haptree/bus/realtime.hpp"
 #include "haptree/bus/snapshot.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
@@ -208,7 +204,7 @@ bool Coupler::take_pose(const lcmt_device_state& m, double now_s) {
   return true;
 }
 
-// Warnings about refused inputs, once each, from the housekeeping thread after each stats tick (never the loop).
+// Warnings about refused inputs, once each, from the loop's stats tick (never inside the computation).
 void Coupler::report_problems() {
   if (!reported_lock_ && opt_.model_fingerprint == 0 && locked_fingerprint_.load() != 0) {
     reported_lock_ = true;
@@ -316,8 +312,7 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
     locked = fp;
   }
   // The handler thread never logs (it carries what the loop waits for): the first case of each refusal is
-  // noted, report_problems logs it after the stats tick (housekeeping thread). The handler is the only
-  // writer of the counters.
+  // noted, report_problems logs it from the loop's stats tick. The handler is the only writer of the counters.
   if (fp != locked) {
     if (c_.foreign_rejected.load(std::memory_order_relaxed) == 0) foreign_fp_.store(fp, std::memory_order_relaxed);
     c_.foreign_rejected.fetch_add(1, std::memory_order_release);
@@ -506,14 +501,13 @@ bool Coupler::new_pose_waiting() const noexcept {
   return pose_recv_s_.load(std::memory_order_acquire) != pose_time_s_;
 }
 
-// Housekeeping thread, once per stats tick of the loop: everything here may allocate, lock and log.
-void Coupler::publish_stats(const LoopStats& t) {
+void Coupler::publish_stats(double period_s, int64_t iterations) {
   const double now = since(kEpoch);
   const double snap_t = snapshot_recv_s_.load();
   const double age_ms = snap_t >= 0 ? 1e3 * (now - snap_t) : -1;
-  c_.rate_hz = static_cast<double>(t.iterations) / t.period_s;
-  c_.p50_us = t.hist.percentile(0.5);
-  c_.p99_us = t.hist.percentile(0.99);
+  c_.rate_hz = static_cast<double>(iterations) / period_s;
+  c_.p50_us = hist_.percentile(0.5);
+  c_.p99_us = hist_.percentile(0.99);
   c_.snapshot_age_ms = age_ms;
   lcmt_process_stats s{};
   bus::stamp(s, instance_id_);
@@ -525,22 +519,23 @@ void Coupler::publish_stats(const LoopStats& t) {
   s.latency_p99_us = c_.p99_us;
   s.snapshot_age_ms = age_ms;
   s.messages_in = c_.snapshots_accepted.load();
-  s.messages_out = t.feedback_seq;
+  s.messages_out = feedback_seq_;
   s.rejected_messages = rejected_messages();
   s.stale_events = c_.stale_rejected.load();
-  s.watchdog_events = t.watchdog_trips;
-  s.clamp_events = t.clamp_events + c_.user_force_clamps.load();
-  s.nonfinite_events = t.nonfinite_events;
+  s.watchdog_events = safety_.watchdog().trips();
+  s.clamp_events = safety_.clamp_events() + c_.user_force_clamps.load();
+  s.nonfinite_events = safety_.nonfinite_events();
   // The mapping too, so a viewer can draw the device point in the scene and a browser device can
   // invert it (scene = position_scale x device_m + offset).
   s.extra_names = {"force_n", "grab_body", "restarts", "duplicate_rejected", "pose_rejected", "position_scale",
                    "offset_x", "offset_y", "offset_z", "force_scale", "max_force_n"};
-  s.extra_values = {c_.force_n.load(), static_cast<double>(t.grab_body),
+  s.extra_values = {c_.force_n.load(), static_cast<double>(grabbing_ ? body_ : 0),
                     static_cast<double>(c_.restarts.load()), static_cast<double>(c_.duplicate_rejected.load()),
                     static_cast<double>(c_.pose_rejected.load()), opt_.position_scale, opt_.offset.x(),
                     opt_.offset.y(), opt_.offset.z(), opt_.force_scale, opt_.max_force_n};
   s.n_extra = static_cast<int32_t>(s.extra_names.size());
   bus_.publish(ch_stats_, s);
+  hist_.reset();
   // Another writer on our device's FEEDBACK segment? Its newest message would carry another instance id.
   if (shm_feedback_check_) {
     if (shm_feedback_check_->read_msg(fb_check_) == bus::ShmRead::kNew && fb_check_.instance_id != instance_id_) {
@@ -549,61 +544,6 @@ void Coupler::publish_stats(const LoopStats& t) {
     }
   }
   report_problems();
-}
-
-// The loop's low-rate work, on a thread of its own (issue 15.1: no allocation, lock or logging in the loop).
-// The loop thread touches hk only before and after the loop (start, stop): the stop wakes the wait at once.
-struct Coupler::Housekeeper {
-  std::mutex m;
-  std::condition_variable cv;
-  bool stop = false;
-  std::thread t;
-  void finish() {
-    {
-      std::lock_guard<std::mutex> lock(m);
-      stop = true;
-    }
-    cv.notify_all();
-    if (t.joinable()) t.join();
-  }
-  ~Housekeeper() { finish(); }   // an exception out of the loop must not leave it joinable
-};
-
-// Sleeps until the loop's next stats tick is due or the writer-check window ends: a few wake-ups a
-// second; a tick's figures are taken within kPoll_s of the tick.
-void Coupler::housekeeping(Housekeeper& hk, double start_s) {
-  if (const std::string w = bus::set_background_thread(); !w.empty())
-    spdlog::warn("coupler {}: housekeeping thread: {}; it shares the loop's priority and CPUs", opt_.user, w);
-  constexpr double kPoll_s = 0.002;
-  double window_until = feedback_check_ ? start_s + kWriterCheckWindow_s : -1;   // open since construction
-  double next_tick = start_s + 1.0, next_settings = start_s + kSettingsEvery_s;
-  for (;;) {
-    if (window_until >= 0 && since(kEpoch) >= window_until) {   // end of the writer-check window
-      bus::set_delivery(bus_, *feedback_check_, false);
-      window_until = -1;
-    }
-    if (loop_stats_.update()) {
-      const LoopStats& t = loop_stats_.front();
-      publish_stats(t);
-      if (feedback_check_) {
-        bus::set_delivery(bus_, *feedback_check_, true);
-        window_until = since(kEpoch) + kWriterCheckWindow_s;
-      }
-      next_tick = t.next_tick_s;
-      if (t.tick_s >= next_settings) {   // again, for a logger that started late
-        publish_settings();
-        next_settings += kSettingsEvery_s;
-      }
-      continue;
-    }
-    const double now = since(kEpoch);
-    double wake = now >= next_tick ? now + kPoll_s : next_tick;   // the tick is due: poll until it comes
-    if (window_until >= 0) wake = std::min(wake, window_until);
-    std::unique_lock<std::mutex> lock(hk.m);
-    if (hk.cv.wait_until(lock, kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(wake)),
-                         [&hk] { return hk.stop; }))
-      return;
-  }
 }
 
 void Coupler::publish_settings() {
@@ -618,34 +558,33 @@ int Coupler::run(const std::atomic<bool>& stop) {
   c_.ftz_daz.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
   const double period = 1.0 / opt_.rate_hz;
   double next = since(kEpoch);
-  const double start = next;
+  if (feedback_check_) feedback_check_until_s_ = next + kWriterCheckWindow_s;   // the first window
   double next_stats = next + 1.0, stats_start = next;
-  publish_settings();   // before the first FEEDBACK (a replay takes each FEEDBACK's settings)
-  Housekeeper hk;   // started and stopped outside the loop
-  hk.t = std::thread([this, &hk, start] { housekeeping(hk, start); });
+  publish_settings();
+  double next_settings = next + kSettingsEvery_s;
   int64_t it_at_stats = 0, it = 0;
   while (!stop.load(std::memory_order_relaxed)) {
     const double now = since(kEpoch);
     iterate(now);
     ++it;
     c_.iterations.store(it, std::memory_order_relaxed);
-    if (now >= next_stats) {   // once a second, outside the computation: hand the figures over
-      next_stats += 1.0;
-      LoopStats& t = loop_stats_.back();
-      t.tick_s = now;
-      t.next_tick_s = next_stats;
-      t.period_s = now - stats_start;
-      t.iterations = it - it_at_stats;
-      t.feedback_seq = feedback_seq_;
-      t.watchdog_trips = safety_.watchdog().trips();
-      t.clamp_events = safety_.clamp_events();
-      t.nonfinite_events = safety_.nonfinite_events();
-      t.grab_body = grabbing_ ? body_ : 0;
-      t.hist = hist_;
-      loop_stats_.publish();
-      hist_.reset();
+    if (feedback_check_until_s_ >= 0 && now >= feedback_check_until_s_) {   // end of the writer-check window
+      bus::set_delivery(bus_, *feedback_check_, false);
+      feedback_check_until_s_ = -1;
+    }
+    if (now >= next_stats) {   // once a second, outside the computation
+      publish_stats(now - stats_start, it - it_at_stats);
+      if (feedback_check_) {
+        bus::set_delivery(bus_, *feedback_check_, true);
+        feedback_check_until_s_ = now + kWriterCheckWindow_s;
+      }
       it_at_stats = it;
       stats_start = now;
+      next_stats += 1.0;
+      if (now >= next_settings) {   // again, for a logger that started late
+        publish_settings();
+        next_settings += kSettingsEvery_s;
+      }
     }
     next += period;
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up
@@ -659,7 +598,6 @@ int Coupler::run(const std::atomic<bool>& stop) {
                                stop);
     }
   }
-  hk.finish();
   if (feedback_check_) bus::set_delivery(bus_, *feedback_check_, true);   // as constructed
   report_problems();   // what the last second refused
   return 0;

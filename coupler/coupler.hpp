@@ -82,17 +82,7 @@ class Coupler {
   void on_snapshot(const void* data, uint32_t size);
   bool iterate(double now_s);
   bool new_pose_waiting() const noexcept;                     // a device pose the loop has not taken yet
-  // What the loop hands the housekeeping thread at each 1 s stats tick: a fixed-size copy, no allocation.
-  struct LoopStats {
-    double tick_s = 0, next_tick_s = 0, period_s = 0;   // loop clock (since kEpoch)
-    int64_t iterations = 0, feedback_seq = 0, watchdog_trips = 0, clamp_events = 0, nonfinite_events = 0;
-    int grab_body = 0;
-    bus::LatencyHistogram hist;   // the period's compute times
-  };
-  // Housekeeping thread of run(): stats, settings, the writer-check windows, warnings. Never the loop.
-  struct Housekeeper;
-  void housekeeping(Housekeeper& hk, double start_s);
-  void publish_stats(const LoopStats& t);
+  void publish_stats(double period_s, int64_t iterations);
   bool take_pose(const lcmt_device_state& m, double now_s);   // origin + sanity; false = refused
   void report_problems();                                     // once-only warnings, outside the loop
   void publish_settings();   // HAPTREE_COUPLER_SETTINGS_<user>: at start, then every kSettingsEvery_s
@@ -127,9 +117,9 @@ class Coupler {
   std::unique_ptr<bus::ShmWriter> shm_feedback_;
   std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
   // LCM: our device's FEEDBACK channel is delivered only kWriterCheckWindow_s after each stats tick (our
-  // own messages would otherwise wake the handler thread at the loop rate; issue 15.1). The housekeeping
-  // thread toggles it (an LCM subscribe allocates and takes LCM's lock: not in the loop).
+  // own messages would otherwise wake the handler thread at the loop rate; issue 15.1).
   bus::RawSubscription* feedback_check_ = nullptr;
+  double feedback_check_until_s_ = -1;
   static constexpr double kWriterCheckWindow_s = 0.02;
   bus::OriginLock device_lock_;        // pose thread (handler for LCM, loop for shm): one device instance
   int64_t newest_pose_seq_ = -1;
@@ -138,7 +128,7 @@ class Coupler {
   bool warned_device_ = false, warned_bad_pose_ = false, warned_writer_ = false, warned_clamp_ = false,
        warned_old_device_ = false;
   int64_t reported_device_restarts_ = 0;  lcmt_device_state pose_{}, shm_pose_msg_{};
-  lcmt_feedback fb_check_{};   // housekeeping-owned, as stats_seq_ and the warned_/reported_ flags
+  lcmt_feedback fb_check_{};
   int64_t stats_seq_ = 0;
   double pose_time_s_ = -1;
   // scene state (for the nearest-body pick on the grab edge only)
@@ -160,7 +150,6 @@ class Coupler {
   Vec6 f_u_ = Vec6::Zero();
   Vec6 f_feed_ = Vec6::Zero();
   bus::LatencyHistogram hist_;
-  bus::LatestValue<LoopStats> loop_stats_;   // writer: loop (stats tick); reader: housekeeping thread
   std::string ch_feedback_, ch_user_force_, ch_stats_;
   // settings message (replay_coupling reads it from the log), built once
   static constexpr double kSettingsEvery_s = 5.0;

@@ -104,15 +104,8 @@ void apply_mlockall(RealtimeReport& r) {
                       "; continuing with pageable memory (a page fault can stall the loop)");
 }
 
-// The calling thread's CPUs before apply_affinity pinned it, for set_background_thread (written once,
-// before the process starts its threads).
-cpu_set_t g_startup_cpus;
-bool g_pinned = false;
-
 void apply_affinity(const RealtimeOptions& o, RealtimeReport& r) {
   const std::vector<int> allowed = allowed_cpus();
-  CPU_ZERO(&g_startup_cpus);
-  const bool saved = sched_getaffinity(0, sizeof(g_startup_cpus), &g_startup_cpus) == 0;
   std::vector<int> bad;
   for (int c : o.cpus)
     if (c < 0 || c >= CPU_SETSIZE || !std::binary_search(allowed.begin(), allowed.end(), c)) bad.push_back(c);
@@ -131,7 +124,6 @@ void apply_affinity(const RealtimeOptions& o, RealtimeReport& r) {
                         cpus_text(allowed));
     return;
   }
-  g_pinned = saved;
   r.applied.push_back(what);
 }
 
@@ -172,18 +164,6 @@ std::string set_io_thread_priority(std::thread::native_handle_type thread, const
   if (e == 0) return "";
   return "I/O thread SCHED_FIFO priority " + std::to_string(p.sched_priority) + " refused (" + errno_name(e) +
          "); it keeps the loop's priority";
-}
-
-std::string set_background_thread() {
-  std::string out;
-  sched_param p{};
-  if (const int e = pthread_setschedparam(pthread_self(), SCHED_OTHER, &p); e != 0)
-    out = "SCHED_OTHER refused (" + errno_name(e) + ")";
-  if (g_pinned) {
-    if (const int e = pthread_setaffinity_np(pthread_self(), sizeof(g_startup_cpus), &g_startup_cpus); e != 0)
-      out += std::string(out.empty() ? "" : "; ") + "the process's startup CPUs refused (" + errno_name(e) + ")";
-  }
-  return out;
 }
 
 std::vector<int> parse_cpu_list(const std::string& text, std::string* error) {

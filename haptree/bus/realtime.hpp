@@ -45,12 +45,6 @@ void log_realtime_report(const RealtimeReport& r, const std::string& process);
 // Returns "" or a refusal in plain words.
 std::string set_io_thread_priority(std::thread::native_handle_type thread, const RealtimeReport& r, bool above_loop);
 
-// Makes the calling thread an ordinary one again: SCHED_OTHER, and the CPUs the process had before
-// apply_realtime pinned it. For a low-rate housekeeping thread that a real-time loop starts (it inherits
-// the loop's policy and CPU, where a spinning SCHED_FIFO loop would starve it and it would delay the loop).
-// Returns "" or what was refused, in plain words.
-std::string set_background_thread();
-
 // "0", "0,1", "2-3", "0,2-3" -> sorted unique CPU ids. On a syntax error returns {} and sets *error.
 std::vector<int> parse_cpu_list(const std::string& text, std::string* error);
 

@@ -1,8 +1,6 @@
 // Counts every operator new in the test binary that includes this header (include it from exactly
 // one .cpp per binary: it replaces the global allocation functions). Tests read
-// haptree::testing::allocation_count() before and after a hot path and expect no change. A loop that runs
-// on its own thread beside others that may allocate (the coupler's, beside the bus handler and its
-// housekeeping thread) calls watch_this_thread() first; watched_allocation_count() counts that thread's only.
+// haptree::testing::allocation_count() before and after a hot path and expect no change.
 #pragma once
 
 #include <atomic>
@@ -12,10 +10,6 @@
 namespace haptree::testing {
 inline std::atomic<long> g_allocation_count{0};
 inline long allocation_count() { return g_allocation_count.load(); }
-inline std::atomic<long> g_watched_allocation_count{0};
-inline thread_local bool t_watched = false;   // constant-initialised: no allocation of its own
-inline void watch_this_thread() { t_watched = true; }
-inline long watched_allocation_count() { return g_watched_allocation_count.load(); }
 }  // namespace haptree::testing
 
 // GCC 12 flags free() in a replaced operator delete as mismatched; the pairing is ours
@@ -24,14 +18,12 @@ inline long watched_allocation_count() { return g_watched_allocation_count.load(
 #pragma GCC diagnostic ignored "-Wmismatched-new-delete"
 void* operator new(std::size_t n) {
   ++haptree::testing::g_allocation_count;
-  if (haptree::testing::t_watched) ++haptree::testing::g_watched_allocation_count;
   if (void* p = std::malloc(n ? n : 1)) return p;
   throw std::bad_alloc();
 }
 void* operator new[](std::size_t n) { return operator new(n); }
 void* operator new(std::size_t n, std::align_val_t al) {
   ++haptree::testing::g_allocation_count;
-  if (haptree::testing::t_watched) ++haptree::testing::g_watched_allocation_count;
   const std::size_t a = static_cast<std::size_t>(al);
   if (void* p = std::aligned_alloc(a, (n + a - 1) & ~(a - 1))) return p;
   throw std::bad_alloc();
