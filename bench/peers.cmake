@@ -6,8 +6,9 @@ if(NOT CLI11_FOUND)
 endif()
 set(_peers_dir ${CMAKE_CURRENT_LIST_DIR}/peers)
 add_executable(bench_peers ${_peers_dir}/bench_peers.cpp ${_peers_dir}/peer_haptree.cpp
-               ${PROJECT_SOURCE_DIR}/tests/support/oracle.cpp)
-target_link_libraries(bench_peers PRIVATE haptree CLI11::CLI11)
+               ${PROJECT_SOURCE_DIR}/tests/support/oracle.cpp
+               ${PROJECT_SOURCE_DIR}/tests/support/quad_reference.cpp)
+target_link_libraries(bench_peers PRIVATE haptree CLI11::CLI11 quadmath)
 target_include_directories(bench_peers PRIVATE ${PROJECT_SOURCE_DIR})
 
 # Debian's mujoco::mujoco target lists a non-existent include dir (libqhull_r), which is a hard CMake

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "haptree/assembly_tree.hpp"
+#include "haptree/inverse_dynamics.hpp"
 #include "haptree/model.hpp"
 
 namespace haptree {
@@ -18,6 +19,13 @@ struct State {
 };
 
 enum class NodeKind : std::uint8_t { kLeaf, kActive, kRigid };
+
+// Iterative refinement in forward_dynamics (Data::refine, issue 14.2).
+enum class Refinement : std::uint8_t {
+  kOff,        // one pass (the default)
+  kDouble,     // one refinement step, residual in double from the pass's kinematics
+  kExtended,   // one refinement step, residual in long double from q itself (set_refinement)
+};
 
 // Counters instead of logging on the hot path (MuJoCo's warning counters).
 struct Diagnostics {
@@ -92,13 +100,20 @@ struct Data {
   // bottom-up/top-down pass with no bias (q̇ = 0, no gravity, no f_ext, τ = r) on the same
   // kinematics, and q̈ += δ. The mobility-form assembly Φ_C = Φ_L − Φ_L W Φ_L is not backward
   // stable next to light bodies; inverse dynamics is, so one step recovers the digits it loses.
-  // About twice the cost of the plain pass. When on, the node coefficients b, β, f, ca, cb (and
-  // with them the coupling snapshot's inputs) hold the correction pass's values afterwards; p_bias
-  // and c hold the state's.
-  bool refine = false;
+  // kDouble computes r in double from the pass's poses: q̈ then solves the problem of the *rounded*
+  // poses, whose own distance from the exact one is the model's conditioning times ε (chain 1024:
+  // 6e-12, as Bullet and Simbody). kExtended computes r in long double from q (kinematics
+  // included), the mixed-precision refinement of Wilkinson: q̈ converges to the solution for the
+  // inputs as given. About twice the cost of the plain pass (kExtended: plus the long-double
+  // inverse dynamics). When on, the node coefficients b, β, f, ca, cb (and with them the coupling
+  // snapshot's inputs) hold the correction pass's values afterwards; p_bias and c hold the state's.
+  // Set it with set_refinement (kExtended sizes its long-double buffers there, not in the pass).
+  Refinement refine = Refinement::kOff;
   Eigen::VectorXd refine_qdd, refine_r;   // (nv) first solve, residual
   std::vector<Vec6> refine_a, refine_f;   // (nbodies) inverse dynamics: accelerations, forces
   std::vector<Vec6> refine_p, refine_c;   // (nbodies) saved p_bias, c
+  // kExtended's inverse dynamics (empty until set_refinement asks for it).
+  InverseDynamicsScratch<long double> refine_x;
 
   // Threads of forward_dynamics' passes and their schedule (set_dca_threads; issue 13.4). 1 (the
   // default) runs everything on the calling thread.

@@ -1298,7 +1298,13 @@ void inverse_dynamics_residual(const Model& m, Data& d, const Eigen::VectorXd& t
 // no bias terms (p_bias = 0, c = 0, τ = r) over the kinematics and inertias already computed.
 void refine_step(const Model& m, Data& d, const State& st) {
   d.refine_qdd = d.qdd;
-  inverse_dynamics_residual(m, d, st.tau, d.refine_qdd);
+  // kExtended: every operation in long double from q, kinematics included (x87's 64-bit
+  // significand). A residual built on the pass's double poses cannot see their rounding; this one
+  // can, so q̈ converges to the solution for the inputs as given (mixed-precision refinement).
+  if (d.refine == Refinement::kExtended && d.refine_x.sized(m.nbodies))
+    inverse_dynamics_residual_in(m, st, d.refine_qdd, d.refine_x, d.refine_r);
+  else
+    inverse_dynamics_residual(m, d, st.tau, d.refine_qdd);
   for (int k = 0; k < m.nbodies; ++k) {
     d.refine_p[k] = d.p_bias[k];
     d.refine_c[k] = d.c[k];
@@ -1329,8 +1335,13 @@ const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st
     dca_bottom_up(m, d, st);
     dca_top_down(m, d);
   }
-  if (d.refine) refine_step(m, d, st);   // serial even when the passes above ran in parallel
+  if (d.refine != Refinement::kOff) refine_step(m, d, st);   // serial even after parallel passes
   return d.qdd;
+}
+
+void set_refinement(const Model& m, Data& d, Refinement r) {
+  d.refine = r;
+  if (r == Refinement::kExtended) d.refine_x.resize(m.nbodies);
 }
 
 void integrate_joint(const Model& m, int k, Eigen::VectorXd& q, const Eigen::VectorXd& qd,

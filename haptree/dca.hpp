@@ -39,6 +39,10 @@ void dca_top_down(const Model& model, Data& data) noexcept;
 // passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
 
+// Data::refine (issue 14.2). kExtended sizes the long-double inverse-dynamics buffers (O(nbodies),
+// 480 bytes per body); call it before the pass, not in it.
+void set_refinement(const Model& model, Data& data, Refinement r);
+
 // Threads for forward_dynamics (issue 13.4). threads = 1: serial (the default). threads > 1: that
 // many, if the build has OpenMP. threads = 0: automatic, i.e. on only where it pays: at least
 // kDcaParallelMinNodes assembly nodes, at least 2 CPUs in this process's affinity mask and a free

@@ -1,7 +1,8 @@
 // bench_peers: haptree against MuJoCo, Simbody and Bullet btMultiBody on the same models, in one run.
 // For every model: µs per forward-dynamics call (median over repetitions, each call timed on its
-// own) and the relative error ‖q̈ − q̈_oracle‖/‖q̈_oracle‖ of each engine against the long-double
-// CRBA/RNEA oracle at one random state (same q, q̇, τ, gravity; no external forces).
+// own) and the relative error ‖q̈ − q̈_ref‖/‖q̈_ref‖ of each engine against the long-double
+// CRBA/RNEA oracle refined in quad precision (tests/support/quad_reference.hpp) at one random state
+// (same q, q̇, τ, gravity; no external forces).
 // Before scaling up, every engine is checked against the oracle on 2- and 3-link models with
 // random frames, axes and full inertias; an engine that disagrees (> 1e-8) is reported and dropped.
 #include <CLI/CLI.hpp>
@@ -23,6 +24,7 @@
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
 #include "tests/support/oracle.hpp"
+#include "tests/support/quad_reference.hpp"
 #ifdef HAPTREE_PEERS_ADAPTIVE
 #include "haptree/adaptive.hpp"
 #endif
@@ -42,6 +44,7 @@ std::map<std::string, Factory> factories() {
   f["haptree"] = peers::make_haptree_engine;
   f["haptree_auto"] = peers::make_haptree_auto_engine;
   f["haptree_refine"] = peers::make_haptree_refine_engine;
+  f["haptree_exact"] = peers::make_haptree_exact_engine;
 #ifdef HAPTREE_PEER_MUJOCO
   f["mujoco"] = [](const Model& m) { return peers::make_mujoco_engine(m, false); };
   f["mujoco_diaginertia"] = [](const Model& m) { return peers::make_mujoco_engine(m, true); };
@@ -262,7 +265,9 @@ int main(int argc, char** argv) {
   // fullinertia costs accuracy.
   const bool diag_explicit =
       std::find(engines.begin(), engines.end(), "mujoco_diaginertia") != engines.end();
-  if (engines.empty())   // haptree_refine (Data::refine, issue 14.2) only when asked for
+  // haptree_refine (Refinement::kDouble, issue 14.2) only when asked for; haptree_exact
+  // (kExtended, the accurate setting) by default, beside the plain pass.
+  if (engines.empty())
     for (auto& [name, f] : all)
       if (name != "haptree_refine") engines.push_back(name);
   for (const char* p : {"mujoco", "simbody", "bullet"})
@@ -357,8 +362,15 @@ int main(int argc, char** argv) {
     bool have_ref = model->nv <= oracle_max_nv;
     if (have_ref) {
       const auto t0 = Clock::now();
-      ref = testing::oracle_forward_dynamics(*model, st).qdd;
-      std::printf("    oracle %.1f s\n", std::chrono::duration<double>(Clock::now() - t0).count());
+      // The long-double oracle refined by the quad-precision residual (its own Cholesky error,
+      // ~κ₂(H)·2⁻⁶⁴, reaches 1e-12 on the 1024 chain: tests/support/quad_reference.hpp).
+      const auto orc = testing::oracle_forward_dynamics(*model, st);
+      const auto quad = testing::quad_reference(*model, st, orc);
+      ref = quad.qdd;
+      std::printf("    oracle %.1f s; reference = oracle refined in quad precision (the long-double "
+                  "oracle's own error %.2e, last step %.1e)\n",
+                  std::chrono::duration<double>(Clock::now() - t0).count(), quad.oracle_rel_change,
+                  quad.last_rel_step);
     }
     std::printf("   %-17s %6s %6s  %-22s %12s %12s %10s %10s %6s %10s %10s\n", "model", "bodies",
                 "nv", "engine", "us_median", "cpu_us_med", "rel_err", "rel_locked", "reps", "us_mean",

@@ -24,16 +24,17 @@ TEST(Allocation, ForwardDynamicsAndIntegrationAllocateNothing) {
     if (std::string(scene) == "star") o.build.max_children = 4;   // inertia-form hub nodes
     auto model = make_scene(scene, o);
     State st(*model);
-    for (bool refine : {false, true}) {   // Data::refine: the refinement step's buffers too
+    // Data::refine: the refinement step's buffers too (kExtended's sized by set_refinement).
+    for (Refinement refine : {Refinement::kOff, Refinement::kDouble, Refinement::kExtended}) {
       Data d(*model);
-      d.refine = refine;
+      set_refinement(*model, d, refine);
       forward_dynamics(*model, d, st);   // warm-up
       const long before = haptree::testing::allocation_count();
       for (int i = 0; i < 5; ++i) {
         forward_dynamics(*model, d, st);
         integrate(*model, st.q, st.qd, d.qdd, 1e-3);
       }
-      EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene << " refine " << refine;
+      EXPECT_EQ(haptree::testing::allocation_count() - before, 0) << scene << " refine " << int(refine);
     }
   }
 }

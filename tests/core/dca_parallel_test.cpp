@@ -82,12 +82,12 @@ TEST(DcaParallel, BitForBitTheSerialPasses) {
       EXPECT_EQ(serial.diag.singular_pivots, 0);
       EXPECT_EQ(par.diag.singular_pivots, 0);
       // Data::refine: the first pass is bit-for-bit and the correction pass serial in both.
-      serial.refine = par.refine = true;
+      serial.refine = par.refine = Refinement::kDouble;
       forward_dynamics(*m, serial, st);
       forward_dynamics(*m, par, st);
       EXPECT_EQ(std::memcmp(serial.qdd.data(), par.qdd.data(), sizeof(double) * m->nv), 0)
           << s.name << " threads " << threads << " refined";
-      serial.refine = par.refine = false;
+      serial.refine = par.refine = Refinement::kOff;
       // And still the oracle's answer (the serial tests' bound).
       // Tolerance: the serial tests' bound B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp).
       if (threads == 2 && m->nv <= 400) {   // bit-for-bit above already implies it; kept cheap

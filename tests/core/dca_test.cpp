@@ -9,6 +9,7 @@
 #include "haptree/dca.hpp"
 #include "haptree/scenes.hpp"
 #include "tests/support/oracle.hpp"
+#include "tests/support/quad_reference.hpp"
 
 namespace haptree {
 namespace {
@@ -150,7 +151,7 @@ TEST_P(DcaRefine, RefinedMatchesOracle) {
   const auto ref = oracle_forward_dynamics(*model, st);
   Data d(*model);
   const Eigen::VectorXd plain = forward_dynamics(*model, d, st);
-  d.refine = true;
+  set_refinement(*model, d, Refinement::kDouble);
   const Eigen::VectorXd refined = forward_dynamics(*model, d, st);
   EXPECT_EQ(d.diag.singular_pivots, 0);
   const double e0 = rel_err(plain, ref.qdd), e1 = rel_err(refined, ref.qdd);
@@ -159,8 +160,61 @@ TEST_P(DcaRefine, RefinedMatchesOracle) {
   EXPECT_LE(e1, e0 + model->nv * testing::kEps) << c.scene;
   // p_bias and c are restored: a second refined call gives the same bits.
   EXPECT_EQ(rel_err(forward_dynamics(*model, d, st), refined, 1e-300), 0.0);
-  std::printf("[ refine ] %s n=%d: plain %.3e refined %.3e bound %.3e\n", c.scene.c_str(),
-              model->nv, e0, e1, bound);
+  // Refinement::kExtended: the residual in long double from q (unit roundoff u = 2⁻⁶⁴). One step
+  // of mixed-precision refinement (Higham, Accuracy and Stability, §12.1) leaves
+  //   e ≤ ε (the rounding of q̈ + δ) + η·e0 + B·u/ε,
+  // η ≤ B the correction solve's relative error (the same backward-stable pass, its rhs without
+  // cancellation) and B·u/ε the residual's own rounding through the solve. No κ(H)·ε floor: the
+  // chain's 6e-12, which is the double poses' rounding, must go.
+  set_refinement(*model, d, Refinement::kExtended);
+  const Eigen::VectorXd exact = forward_dynamics(*model, d, st);
+  const double e2 = rel_err(exact, ref.qdd);
+  const double bound_x = 2 * testing::kEps + bound * e0 + bound * std::ldexp(1.0, -11);
+  EXPECT_LE(e2, bound_x) << c.scene;
+  EXPECT_EQ(d.diag.singular_pivots, 0);
+  // Against the quad-precision reference (tests/support/quad_reference.hpp): the errors the
+  // long-double oracle cannot resolve where κ₂(H)·u_LD is near them (the 1024 chain).
+  const auto quad = testing::quad_reference(*model, st, ref);
+  const double q0 = rel_err(plain, quad.qdd), q1 = rel_err(refined, quad.qdd),
+               q2 = rel_err(exact, quad.qdd);
+  EXPECT_LE(q2, bound_x) << c.scene;
+  // The reference converged (its last step within double rounding) and the oracle is inside its
+  // own bound, B with ε → u_LD.
+  EXPECT_LE(quad.last_rel_step, 2 * testing::kEps) << c.scene;
+  EXPECT_LE(quad.oracle_rel_change, bound * std::ldexp(1.0, -11)) << c.scene;
+  std::printf("[ refine ] %s n=%d vs oracle: plain %.3e refined %.3e extended %.3e | vs quad: "
+              "plain %.3e refined %.3e extended %.3e oracle %.3e | bound %.3e (extended %.3e)\n",
+              c.scene.c_str(), model->nv, e0, e1, e2, q0, q1, q2, quad.oracle_rel_change, bound,
+              bound_x);
+}
+
+// The quad residual is the oracle's system: τ − ID(q, q̇, x) = τ − C − H x for any x, to the
+// long-double rounding of H x and C (c·n·u_LD·(‖τ‖ + ‖C‖ + ‖H‖‖x‖), c = 10). Checks the one
+// implementation of haptree/inverse_dynamics.hpp (kExtended's residual, the quad reference)
+// against the oracle's independent CRBA/RNEA, for every joint type and fixed joints.
+TEST(InverseDynamicsResidual, QuadResidualIsTheOracleSystem) {
+  for (const RefineCase& c : {RefineCase{"chain", 64, true, true, 0}, RefineCase{"random_tree", 80, true, true, 0},
+                              RefineCase{"star", 40, true, true, 4}, RefineCase{"protein_like", 0, false, false, 0}}) {
+    SceneOptions o;
+    o.n = c.n;
+    o.seed = 4;
+    o.mixed_joints = c.mixed;
+    o.free_root = c.free_root;
+    o.build.max_children = c.max_children;
+    auto model = make_scene(c.scene, o);
+    const State st = random_state(*model, 9);
+    const auto orc = oracle_forward_dynamics(*model, st);
+    testing::VecXL x = testing::VecXL::Zero(model->nv);
+    for (int i = 0; i < model->nv; ++i) x(i) = std::sin(1.7 * i + 0.3);
+    const testing::VecXL r = testing::quad_residual(*model, st, x);
+    const testing::VecXL tau = st.tau.cast<long double>();
+    const testing::VecXL r_orc = tau - orc.C - orc.H * x;
+    const long double scale = tau.norm() + orc.C.norm() + orc.H.norm() * x.norm();
+    const double dev = static_cast<double>((r - r_orc).norm() / scale);
+    EXPECT_LE(dev, 10 * model->nv * std::ldexp(1.0, -64)) << c.scene;
+    std::printf("[ residual ] %s n=%d: |r_quad - (tau - C - Hx)| / scale = %.3e\n", c.scene.c_str(),
+                model->nv, dev);
+  }
 }
 
 INSTANTIATE_TEST_SUITE_P(

@@ -11,6 +11,7 @@
 #include "haptree/dca.hpp"
 #include "haptree/molecule/scene.hpp"
 #include "tests/support/oracle.hpp"
+#include "tests/support/quad_reference.hpp"
 
 namespace haptree {
 namespace {
@@ -26,6 +27,7 @@ TEST(ProteinAccuracy, BacteriorhodopsinDcaMatchesOracle) {
   forward_kinematics(m, d, st.q);
   sc.compute(d, st.f_ext);
   forward_dynamics(m, d, st);
+  const Eigen::VectorXd plain = d.qdd;
   EXPECT_EQ(d.diag.singular_pivots, 0);
   const auto orc = testing::oracle_forward_dynamics(m, st);
   const double err = testing::rel_err(d.qdd, orc.qdd);
@@ -47,11 +49,25 @@ TEST(ProteinAccuracy, BacteriorhodopsinDcaMatchesOracle) {
   // Data::refine (issue 14.2): one refinement step with a backward-stable residual (RNEA) removes
   // the assembly's element growth, so the growth-free estimate c·n·ε = 1.7e-12 is the tolerance
   // (measured at bench_peers' state: 6.9e-14, docs/accuracy_and_stability.md).
-  d.refine = true;
+  set_refinement(m, d, Refinement::kDouble);
   forward_dynamics(m, d, st);
   const double err_ref = testing::rel_err(d.qdd, orc.qdd);
   std::printf("[bR] refined err %.3e, tol %.3e\n", err_ref, std::min(c_n_eps, tol));
   EXPECT_LE(err_ref, std::min(c_n_eps, tol));
+
+  // Refinement::kExtended (residual in long double from q) against the quad-precision reference:
+  // one mixed-precision step leaves 2ε + B·e0 + B·2⁻¹¹ (tests/core/dca_test.cpp, DcaRefine), e0 the
+  // plain pass's error; and the long-double oracle is inside its own bound (B with ε → 2⁻⁶⁴).
+  const auto quad = testing::quad_reference(m, st, orc);
+  const double B = testing::qdd_error_bound(orc, st, testing::kBoundC);
+  set_refinement(m, d, Refinement::kExtended);
+  forward_dynamics(m, d, st);
+  const double err_x = testing::rel_err(d.qdd, quad.qdd);
+  std::printf("[bR] vs quad reference: plain %.3e, extended %.3e (tol %.3e); oracle's own %.3e\n",
+              testing::rel_err(plain, quad.qdd), err_x, 2 * testing::kEps + B * err + B * std::ldexp(1.0, -11),
+              quad.oracle_rel_change);
+  EXPECT_LE(err_x, 2 * testing::kEps + B * err + B * std::ldexp(1.0, -11));
+  EXPECT_LE(quad.oracle_rel_change, B * std::ldexp(1.0, -11));
 }
 
 }  // namespace
