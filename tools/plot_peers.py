@@ -62,9 +62,9 @@ def main():
         axes[0][col].set_title(f"{model}: time per forward-dynamics call")
         axes[0][col].set_xlabel("DOF n")
         axes[0][col].set_ylabel(tlabel)
-        axes[1][col].set_title(f"{model}: relative q̈ error vs long-double oracle")
+        axes[1][col].set_title(f"{model}: relative q̈ error vs reference")
         axes[1][col].set_xlabel("DOF n")
-        axes[1][col].set_ylabel("‖q̈ − q̈_oracle‖ / ‖q̈_oracle‖")
+        axes[1][col].set_ylabel("‖q̈ − q̈_ref‖ / ‖q̈_ref‖ (oracle; quad-refined since 2026-12-02)")
         for ax in (axes[0][col], axes[1][col]):
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
@@ -84,7 +84,7 @@ def main():
         axes[1][col].bar([r["engine"] for r in full],
                          [max(float(r["rel_err"]), 1e-17) for r in full])
         axes[1][col].set_yscale("log")
-        axes[1][col].set_title(f"{titles[model]}: relative q̈ error vs oracle")
+        axes[1][col].set_title(f"{titles[model]}: relative q̈ error vs reference")
         for ax in (axes[0][col], axes[1][col]):
             ax.tick_params(axis="x", rotation=45, labelsize=8)
             ax.grid(True, axis="y", which="both", alpha=0.3)
