@@ -137,16 +137,20 @@ struct RefineCase {
 };
 class DcaRefine : public ::testing::TestWithParam<RefineCase> {};
 
-TEST_P(DcaRefine, RefinedMatchesOracle) {
-  const RefineCase c = GetParam();
+std::shared_ptr<const Model> refine_scene(const RefineCase& c, unsigned seed) {
   SceneOptions o;
   o.n = c.n;
-  o.seed = 1;
+  o.seed = seed;
   o.mixed_joints = c.mixed;
   o.free_root = c.free_root;
   // max_children > 0: fixed joints and inertia-form clusters, checked against their own oracle.
   o.build.max_children = c.max_children;
-  auto model = make_scene(c.scene, o);
+  return make_scene(c.scene, o);
+}
+
+TEST_P(DcaRefine, RefinedMatchesOracle) {
+  const RefineCase c = GetParam();
+  auto model = refine_scene(c, 1);
   const State st = random_state(*model, 7);
   const auto ref = oracle_forward_dynamics(*model, st);
   Data d(*model);
@@ -195,13 +199,7 @@ TEST_P(DcaRefine, RefinedMatchesOracle) {
 TEST(InverseDynamicsResidual, QuadResidualIsTheOracleSystem) {
   for (const RefineCase& c : {RefineCase{"chain", 64, true, true, 0}, RefineCase{"random_tree", 80, true, true, 0},
                               RefineCase{"star", 40, true, true, 4}, RefineCase{"protein_like", 0, false, false, 0}}) {
-    SceneOptions o;
-    o.n = c.n;
-    o.seed = 4;
-    o.mixed_joints = c.mixed;
-    o.free_root = c.free_root;
-    o.build.max_children = c.max_children;
-    auto model = make_scene(c.scene, o);
+    auto model = refine_scene(c, 4);
     const State st = random_state(*model, 9);
     const auto orc = oracle_forward_dynamics(*model, st);
     testing::VecXL x = testing::VecXL::Zero(model->nv);
