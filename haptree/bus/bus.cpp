@@ -169,7 +169,8 @@ RawSubscription& Bus::subscribe_raw(const std::string& channel, RawSubscription:
   auto* raw = sub.get();
   {
     std::lock_guard<std::mutex> lock(delivery_mutex());
-    raw->lcm_subscription = lcm_->subscribe(channel, &RawSubscription::on_raw, raw);
+    raw->c_subscription =
+        lcm_subscribe(lcm_->getUnderlyingLCM(), channel.c_str(), &RawSubscription::dispatch, raw);
   }
   raw->auth = auth_.get();
   add(std::move(sub));
@@ -183,12 +184,13 @@ std::mutex& delivery_mutex() {
 
 void set_delivery(Bus& bus, RawSubscription& sub, bool on) {
   std::lock_guard<std::mutex> lock(delivery_mutex());
-  if (on == (sub.lcm_subscription != nullptr)) return;
+  if (on == (sub.c_subscription != nullptr)) return;
+  lcm_t* c = bus.lcm().getUnderlyingLCM();
   if (on) {
-    sub.lcm_subscription = bus.lcm().subscribe(sub.channel(), &RawSubscription::on_raw, &sub);
+    sub.c_subscription = lcm_subscribe(c, sub.channel().c_str(), &RawSubscription::dispatch, &sub);
   } else {
-    bus.lcm().unsubscribe(sub.lcm_subscription);
-    sub.lcm_subscription = nullptr;
+    lcm_unsubscribe(c, sub.c_subscription);   // safe against a dispatch in progress (see bus.hpp)
+    sub.c_subscription = nullptr;
   }
 }
 

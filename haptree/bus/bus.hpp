@@ -50,7 +50,12 @@ class SubscriptionBase {
   virtual ~SubscriptionBase() = default;
   const std::string& channel() const noexcept { return channel_; }
   const ChannelStats& stats() const noexcept { return stats_; }
-  lcm::Subscription* lcm_subscription = nullptr;
+  lcm::Subscription* lcm_subscription = nullptr;   // typed subscriptions (never unsubscribed)
+  // Raw subscriptions go through LCM's C API: lcm_unsubscribe keeps a handler that a dispatch on
+  // another thread is running until it returns, and the userdata (this object) lives as long as the
+  // Bus. lcm::LCM::unsubscribe instead deletes its C++ wrapper at once, which that dispatch then
+  // reads (ASan: heap-buffer-overflow in RawSubscription::on_raw from the coupler's delivery toggle).
+  lcm_subscription_t* c_subscription = nullptr;
   Authenticator* auth = nullptr;   // the Bus's, in a keyed session: messages are verified and stripped
 
  protected:
@@ -105,6 +110,11 @@ class RawSubscription final : public SubscriptionBase {
  public:
   using Callback = std::function<void(const void* data, uint32_t size, const std::string& channel)>;
   RawSubscription(std::string channel, Callback cb) : SubscriptionBase(std::move(channel)), cb_(std::move(cb)) {}
+  // LCM's C callback (userdata = this).
+  static void dispatch(const lcm_recv_buf_t* rbuf, const char* channel, void* self) {
+    const lcm::ReceiveBuffer rb{rbuf->data, rbuf->data_size, rbuf->recv_utime};
+    static_cast<RawSubscription*>(self)->on_raw(&rb, std::string(channel));
+  }
   void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
     stats_.received.fetch_add(1, std::memory_order_relaxed);
     size_t size = rbuf->data_size;

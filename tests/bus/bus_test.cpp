@@ -3,12 +3,17 @@
 
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <chrono>
+#include <cstring>
+#include <memory>
 #include <random>
 #include <thread>
+#include <vector>
 
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/delivery.hpp"
 
 namespace haptree::bus {
 namespace {
@@ -188,6 +193,53 @@ TEST(Bus, HandlerThreadDeliversWhileOtherThreadsPublish) {
   lcmt_device_state last{};
   EXPECT_GT(box.read(last), 0u);
   EXPECT_EQ(last.seq, kN);
+  EXPECT_EQ(thread.errors(), 0);
+}
+
+// set_delivery from one thread while the handler thread dispatches that channel (the coupler's
+// second-writer check, twice a second, beside 10 kHz FEEDBACK). lcm::LCM::unsubscribe deleted its
+// C++ wrapper while a dispatch could still read it: under AddressSanitizer the embedded session died
+// in RawSubscription::on_raw (heap-buffer-overflow), and a release build could jump through a
+// reused block (a SIGSEGV in the embedded viewer session). 20 000 stop/resume cycles against a
+// publisher that never pauses, with allocations of the wrapper's size between them so a freed block
+// is reused at once. In a release build the window is rarely hit (the old code passed 3 of 3 runs);
+// under AddressSanitizer the old code fails at once (heap-use-after-free in the handler thread):
+// cmake -DCMAKE_CXX_FLAGS=-fsanitize=address ... && bus_bus_test --gtest_filter='*Toggled*'.
+TEST(Bus, RawDeliveryToggledWhileTheHandlerThreadDispatches) {
+  Bus bus("memq://");
+  std::atomic<int64_t> seen{0};
+  std::atomic<bool> bad{false};
+  auto& sub = bus.subscribe_raw("FEEDBACK_TOGGLE", [&](const void* d, uint32_t n, const std::string& ch) {
+    if (n != 64 || ch != "FEEDBACK_TOGGLE" || static_cast<const unsigned char*>(d)[0] != 0xAB) bad = true;
+    seen.fetch_add(1, std::memory_order_relaxed);
+  });
+  HandlerThread thread(bus, 1);
+  std::atomic<bool> stop{false};
+  std::thread publisher([&] {
+    unsigned char msg[64];
+    std::memset(msg, 0xAB, sizeof msg);
+    while (!stop.load(std::memory_order_relaxed)) {
+      bus.publish_raw("FEEDBACK_TOGGLE", msg, sizeof msg);
+      std::this_thread::sleep_for(10us);   // a bounded memq queue: the handler keeps up
+    }
+  });
+  std::vector<std::unique_ptr<char[]>> churn;
+  for (int i = 0; i < 20000; ++i) {
+    set_delivery(bus, sub, i % 2 == 1);
+    churn.emplace_back(new char[48]);   // the size class of LCM's C++ subscription wrapper
+    if (churn.size() > 8) churn.erase(churn.begin());
+  }
+  set_delivery(bus, sub, true);
+  const int64_t before = seen.load();
+  const auto deadline = std::chrono::steady_clock::now() + 5s;
+  while (seen.load() < before + 100 && std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(1ms);
+  stop = true;
+  publisher.join();
+  thread.stop();
+  EXPECT_FALSE(bad.load());
+  EXPECT_GE(seen.load(), before + 100);   // delivery resumed
+  EXPECT_EQ(sub.stats().received.load(), seen.load());
   EXPECT_EQ(thread.errors(), 0);
 }
 
