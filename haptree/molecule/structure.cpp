@@ -78,17 +78,29 @@ struct LineInfo {
 };
 
 // Scans the PDB text once for what gemmi 0.5.7 does not give us: the line of every ATOM/HETATM
-// serial and the CONECT records.
+// serial and the CONECT records. Also returns the text gemmi reads, every line padded with blanks to
+// PDB's 80 columns: gemmi reads some fixed columns past the end of a short line (a LINK record of
+// 74-77 columns: its distance field at columns 74-78, found by the fuzz smoke run under ASan), and
+// trailing blanks are what a short line means in PDB. A NUL byte is refused (gemmi would stop there).
 void scan_pdb_text(const std::string& path, std::unordered_map<int, int>& serial_line,
                    std::vector<std::pair<int, std::vector<int>>>& conect,
-                   std::vector<int>& conect_lines) {
+                   std::vector<int>& conect_lines, std::string& padded) {
   std::ifstream in(path);
   if (!in) throw StructureError(path + ": cannot open file");
   std::string line;
   int ln = 0;
   bool in_first_model = true, seen_model = false;
+  padded.clear();
   while (std::getline(in, line)) {
     ++ln;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    // gemmi keeps a record as a C string: a NUL would cut it short of the padding below.
+    if (line.find('\0') != std::string::npos)
+      throw StructureError(path + ":" + std::to_string(ln) + ": NUL byte at column " +
+                           std::to_string(line.find('\0') + 1) + " (a PDB file is text)");
+    padded += line;
+    if (line.size() < 80) padded.append(80 - line.size(), ' ');
+    padded += '\n';
     const std::string rec = line.substr(0, 6);
     if (rec == "MODEL ") {
       if (seen_model) in_first_model = false;
@@ -200,8 +212,9 @@ Structure read_structure(const std::string& path, const ReadOptions& opt) {
       throw StructureError(path + ": mmCIF support was not compiled in (install tao-pegtl-dev)");
 #endif
     } else {
-      scan_pdb_text(path, serial_line, conect_raw, conect_lines);
-      st = gemmi::read_pdb_file(path);
+      std::string text;
+      scan_pdb_text(path, serial_line, conect_raw, conect_lines, text);
+      st = gemmi::read_pdb_string(text, path);
     }
   } catch (const StructureError&) {
     throw;

@@ -163,6 +163,25 @@ TEST(MoleculeRead, MalformedInputsGiveFileLineAndWhat) {
   EXPECT_THROW(read_structure("/nonexistent/x.pdb"), StructureError);
 }
 
+// gemmi 0.5.7 reads a LINK record's distance at columns 74-78 whatever the line's length: the fuzz
+// smoke run found the over-read under ASan (fuzz/regressions/structure_pdb/link_distance_past_line_end_asan).
+// Lines are padded to 80 columns before gemmi reads them, so a 75-column LINK reads as it means
+// (distance blank); a NUL byte, which gemmi would cut the record at, is refused with its line.
+TEST(MoleculeRead, ShortLinkRecordAndNulByte) {
+  const std::string atoms =
+      "HETATM    1  C1  XYZ A   1       0.000   0.000   0.000  1.00  0.00           C\n"
+      "HETATM    2  C2  XYZ A   1       1.500   0.000   0.000  1.00  0.00           C\n";
+  std::string link = "LINK         C1  XYZ A   1                 C2  XYZ A   1                  1";
+  ASSERT_EQ(link.size(), 75u);
+  const std::string p = tmp_file("link.pdb", atoms + link + "\n");
+  EXPECT_EQ(read_structure(p).atoms.size(), 2u);
+  fs::remove(p);
+  const std::string n = tmp_file("nul.pdb", atoms + std::string("REMARK a\0b\n", 11));
+  const std::string m = expect_throw_message([&] { read_structure(n); });
+  EXPECT_NE(m.find(":3: NUL byte at column 9"), std::string::npos) << m;
+  fs::remove(n);
+}
+
 TEST(MoleculeRead, AltlocKeepsHighestOccupancy) {
   const std::string p = tmp_file("alt.pdb",
       "HETATM    1  C1 AXYZ A   1       0.000   0.000   0.000  0.40  0.00           C\n"
