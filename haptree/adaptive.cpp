@@ -45,6 +45,9 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   local_r.assign(nb, Vec3::Zero());
   ref_velocity.assign(nn, Vec6::Zero());
   pred_offset.assign(nb, Vec3::Zero());
+  inertia_form.assign(nn, 0);
+  if_bodies.reserve(nb);
+  if_top.assign(nb, 0);
   std::size_t phi = 0, vec = 0;
   for (int node = 0; node < nn; ++node) {
     const std::size_t h = t.handle_num[node];
@@ -569,6 +572,42 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
     ad.comp_com[F] = single ? m.com[ref] : com;
     ad.comp_Ic[F] = single ? m.inertia[ref] : Ic;
   }
+  // Inertia-form active nodes (children first: their ids are larger). The cases and their
+  // readers are dca.cpp's; a side read as an inertia must be a leaf (not the ground) or such a
+  // node, a projected one-handle side may also be in mobility form (one_handle_inertia inverts
+  // its Φ), and a pin joint to the ground must be active.
+  std::fill(ad.inertia_form.begin(), ad.inertia_form.end(), 0);
+  auto inertia_side = [&](int X) {
+    return t.is_leaf(X) ? t.body[X] != 0 : ad.active[X] && ad.inertia_form[X];
+  };
+  auto one_handle_side = [&](int X) {
+    return t.is_leaf(X) ? t.body[X] != 0 : ad.active[X] || !ad.comp_ground[X];
+  };
+  for (auto it = ad.active_nodes.rbegin(); it != ad.active_nodes.rend(); ++it) {
+    const int node = *it;
+    if (m.cluster_index[node] < 0) continue;
+    const int pin = m.cluster_pin[node];
+    if (pin >= 0 && !std::binary_search(ad.active_joints.begin(), ad.active_joints.end(), pin))
+      continue;
+    const int P = t.P[node], Q = t.Q[node];
+    bool ok = false;
+    switch (m.cluster_case[node]) {
+      case Model::ClusterCase::kFixedMerge: ok = inertia_side(P) && inertia_side(Q); break;
+      case Model::ClusterCase::kGroundPin: ok = inertia_side(Q); break;
+      case Model::ClusterCase::kProjectQ: ok = inertia_side(P) && one_handle_side(Q); break;
+      case Model::ClusterCase::kProjectP: ok = inertia_side(Q) && one_handle_side(P); break;
+      default: break;
+    }
+    ad.inertia_form[node] = ok;
+  }
+  ad.if_bodies.clear();
+  std::fill(ad.if_top.begin(), ad.if_top.end(), 0);
+  for (int node : ad.active_nodes) {
+    if (!ad.inertia_form[node] || (t.up[node] >= 0 && ad.inertia_form[t.up[node]])) continue;
+    ad.if_top[ad.ref_body[node]] = 1;
+    for_each_body(t, node, stack, [&](int k) { ad.if_bodies.push_back(k); });
+  }
+  std::sort(ad.if_bodies.begin(), ad.if_bodies.end());
   // V1: inactive joints do not move; moving ones are locked impulsively.
   lock_velocities(m, d, st, ad);
   ad.body_terms_current = false;
@@ -817,6 +856,7 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
   for (int F : ad.frontier) {
     const int h = t.handle_num[F];
     ++up_count;
+    if (!t.is_leaf(F)) d.cluster_live[F] = 0;   // rigid here: read in mobility form (Φ below)
     if (ad.comp_ground[F]) {
       for (int x = 0; x < h; ++x) {
         for (int y = 0; y < h; ++y) d.Phi(F, h, x, y).setZero();
@@ -863,9 +903,26 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
         if (y != x) d.Phi(F, h, y, x) = blk.transpose();
       }
   }
-  // 3. Hybrid bottom-up and top-down over the active region only.
+  // 3. Hybrid bottom-up and top-down over the active region only. The inertia-form regions'
+  // offsets are compensated sums of d_k (as dca.cpp's cluster_offsets, but over those regions
+  // only, O(|active|)): every joint inside them is active, so d_k is current there.
+  for (int k : ad.if_bodies) {
+    if (ad.if_top[k]) {
+      d.cluster_offset[k].setZero();
+      d.cluster_offset_lo[k].setZero();
+      continue;
+    }
+    const int p = m.parent[k];
+    const Vec3& a = d.cluster_offset[p];
+    const Vec3& b = d.d[k];
+    const Vec3 s = a + b;
+    const Vec3 bb = s - a;
+    d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + ((a - (s - bb)) + (b - bb));
+    d.cluster_offset[k] = s;
+  }
   for (auto it = ad.active_nodes.rbegin(); it != ad.active_nodes.rend(); ++it) {
-    dca_assemble(m, d, *it, st.tau);
+    if (ad.inertia_form[*it]) dca_bottom_up_node(m, d, *it, st.tau);
+    else dca_assemble(m, d, *it, st.tau);
     ++up_count;
   }
   for (int root : t.roots)

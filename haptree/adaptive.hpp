@@ -100,6 +100,14 @@ struct AdaptiveData {
   std::vector<Vec3> local_r;           // (nbodies)
   std::vector<Vec6> ref_velocity;      // (nnodes) frontier node velocity at its reference origin
   std::vector<Vec3> pred_offset;       // (nbodies) r_J − r_ref of J's predecessor's frontier node
+  // Active fixed-joint cluster nodes assembled in inertia form, as the full pass does: a weld
+  // joined by the mobility difference formula cancels ~(weld length/gyration radius)² of the
+  // digits (issue 14). Eligible: those whose inertia-form children are leaves or such nodes.
+  // if_bodies: their bodies, ascending, for the compensated cluster offsets; if_top: the first
+  // body of each such region.
+  std::vector<char> inertia_form;      // (nnodes)
+  std::vector<int> if_bodies;
+  std::vector<char> if_top;            // (nbodies)
   // Metric coefficients (§8), full-articulated, from the last selection.
   std::vector<double> Psi_buf, p_buf;
   std::vector<double> eta;             // (nnodes)

@@ -328,12 +328,13 @@ TEST(OriginIndependence, CouplingSnapshotAtAGrab) {
 }
 
 // Hybrid pass on a random active region (a rooted subtree): placed vs origin and vs the oracle
-// with the locked DOFs removed (their q̇ zeroed by set_active_region).
-// Known gap (docs/accuracy_and_stability.md): with a weld tens of metres long inside a rigid
-// frontier node the hybrid pass was 83× (native) to 236× (generic x86-64) above the bound (1.4e-12
-// against 1.0e-13 on seed 3 natively); since issue 14.1's pivot test 4.7× natively, 3.7× generic;
-// for those models only the placement invariance of a translation is asserted, and the oracle
-// error is printed.
+// with the locked DOFs removed (their q̇ zeroed by set_active_region). Models with welds of 30 m
+// and 1 km are held to the same bound as the others (their worst err/tolerance is printed): the
+// hybrid pass joins active fixed-joint clusters in inertia form, as the full pass does. (Before,
+// it joined them by the mobility difference formula: 5.6× the bound on seed 6, an 879 m weld
+// between two active nodes, from the velocity terms; see docs/accuracy_and_stability.md.) A
+// rotation of a model with a far weld changes q̈ by up to κ(H)·ε per rounding of the rotated data
+// on either side, so there the two results are compared through the oracle only (both ≤ tol).
 TEST(OriginIndependence, HybridPassOnARandomRegion) {
   double worst_place = 0, worst_oracle = 0, worst_far_weld = 0;
   for (unsigned seed = 1; seed <= 12; ++seed) {
@@ -371,12 +372,9 @@ TEST(OriginIndependence, HybridPassOnARandomRegion) {
         const double tol =
             testing::mass_matrix_condition(full) <= 1e6 ? std::min(1e-10, B) : B;
         const double eo = rel_err(qa, orc.qdd);
-        if (far_weld) {
-          worst_far_weld = std::max(worst_far_weld, eo / tol);
-        } else {
-          EXPECT_LE(eo, tol) << "seed " << seed;
-          worst_oracle = std::max(worst_oracle, eo);
-        }
+        EXPECT_LE(eo, tol) << "seed " << seed;
+        if (far_weld) worst_far_weld = std::max(worst_far_weld, eo / tol);
+        else worst_oracle = std::max(worst_oracle, eo);
         if (at_origin) {
           q0 = qa;
         } else if (!pl.rotated || !far_weld) {
