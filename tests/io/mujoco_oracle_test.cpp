@@ -168,8 +168,8 @@ struct Result {
 // inertia by η ≤ 1e-12, so H by ‖δH‖ ≤ nb·depth·η (each body's angular Jacobian has ≤ depth unit
 // columns) and q̈ by ≤ κ(H)·‖δH‖/λ_max(H) relative, the bias forces likewise (factor 2);
 // λ_max ≥ max_i H_ii keeps it an upper bound. So MuJoCo is held to B + that data term (measured on
-// arm.urdf: 4.2e-12 against B = 9.3e-13). A real error (a wrong term, a wrong convention) moves q̈ by O(1) relative,
-// far above 2B wherever κ(H) ≪ 1/(n·ε).
+// arm.urdf: 4.2e-12 against B = 9.3e-13). A real error (a wrong term, a wrong convention)
+// moves q̈ by O(1) relative, far above these wherever κ(H) ≪ 1/(n·ε).
 
 Result compare(const Model& model, const State& st, const mjModel* mm, bool use_f_ext = true) {
   Data d(model);
