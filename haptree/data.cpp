@@ -62,6 +62,10 @@ Data::Data(const Model& model) {
   refine_f.assign(nb, Vec6::Zero());
   refine_p.assign(nb, Vec6::Zero());
   refine_c.assign(nb, Vec6::Zero());
+  refine_b_buf.assign(vec, 0.0);
+  refine_f_buf.assign(vec, 0.0);
+  refine_beta.assign(nn, Vec6::Zero());
+  refine_taut.assign(nn, Vec6::Zero());
   const int nc = model.ncluster_nodes;
   if (nc > 0) cluster_offset.assign(nb, Vec3::Zero());
   if (nc > 0) cluster_offset_lo.assign(nb, Vec3::Zero());
@@ -73,6 +77,7 @@ Data::Data(const Model& model) {
   cqa.assign(nc, Vec6::Zero());
   ca.assign(nc, Vec6::Zero());
   cb.assign(nc, Vec6::Zero());
+  for (auto* v : {&refine_cp, &refine_cpA, &refine_cqa, &refine_ca, &refine_cb}) v->assign(nc, Vec6::Zero());
   cluster_live.assign(nn, 0);
   leaf_adr.assign(nn, -1);
   leaf_side.assign(nn, 0);
@@ -83,6 +88,7 @@ Data::Data(const Model& model) {
     if ((t.is_leaf(P) && t.body[P] != 0) || (t.is_leaf(Q) && t.body[Q] != 0)) leaf_adr[node] = nleaf++;
   }
   leaf_F.assign(nleaf, Mat6::Zero());
+  leaf_G.assign(nleaf, Mat6::Zero());
 
   dca_cut = parallel_cut(t, 1, 0);
 }

@@ -586,7 +586,7 @@ using KMat = Eigen::Matrix<double, R, C,
 template <int NJ, int NC>
 void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointMat& Sd,
                       const JointMat& Td, const KMat<NJ, 1>& taup, const Vec6& bO, const Vec6& cp,
-                      Mat6& R, Mat6& Y, Mat6& F, Vec6& fJ0, Vec6& aL0) {
+                      Mat6& R, Mat6& Y, Mat6& F, Vec6& fJ0, Vec6& aL0, Mat6& Gtau) {
   const int nJ = static_cast<int>(Sd.cols()), nc = static_cast<int>(Td.cols());
   const KMat<6, NJ> S = Sd;
   const KMat<6, NC> T = Td;
@@ -636,6 +636,15 @@ void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointM
     fJ0.noalias() += S * taup;
     aL0.noalias() += S * alpha0;
   }
+  // Gtau = ∂f_J0/∂τ' (first nJ columns; with p = c' = b_O = 0): the same lines for unit torques. The
+  // correction pass of Data::refine rebuilds f_J0 = Y b_O + G τ' from it (bias_assemble_node).
+  Gtau.setZero();
+  if (nJ > 0) {
+    const KMat<NC, NJ> Gg = -(T.transpose() * (Bh * S));
+    const KMat<NJ, NJ> A = llt.solve(KMat<NJ, NJ>(KMat<NJ, NJ>::Identity(nJ, nJ) - KstH * Gg));
+    const KMat<NC, NJ> Lam = E * KMat<NC, NJ>(Ktt * Gg + Kst.transpose() * A);
+    Gtau.leftCols(nJ) = T * Lam + S;
+  }
 }
 
 void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen::VectorXd& tau) {
@@ -654,14 +663,15 @@ void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen
   const Vec6 bO = d.b(ls.O, ls.sO);
   Mat6 R, Y;
   Mat6& F = d.leaf_F[d.leaf_adr[node]];
+  Mat6& G = d.leaf_G[d.leaf_adr[node]];
   Vec6 fJ0, aL0;
   if (nJ == 1) {
     const KMat<1, 1> taup(ls.sigma * tau(m.v_adr[J]));
-    leaf_form_kernel<1, 5>(K, p, Bh, S, T, taup, bO, cp, R, Y, F, fJ0, aL0);
+    leaf_form_kernel<1, 5>(K, p, Bh, S, T, taup, bO, cp, R, Y, F, fJ0, aL0, G);
   } else {
     const DynVec taup = nJ > 0 ? DynVec(ls.sigma * tau.segment(m.v_adr[J], nJ)) : DynVec(0);
     leaf_form_kernel<Eigen::Dynamic, Eigen::Dynamic>(K, p, Bh, S, T, taup, bO, cp, R, Y, F, fJ0,
-                                                     aL0);
+                                                     aL0, G);
   }
   d.W[node] = Y;   // = T (Tᵀ Φ̂ T)⁻¹ Tᵀ: coupling and metric readers keep f_c = W(s_P − s_Q) + β
   d.beta[node] = ls.sigma * fJ0;
@@ -1294,8 +1304,125 @@ void inverse_dynamics_residual(const Model& m, Data& d, const Eigen::VectorXd& t
   }
 }
 
-// One step of iterative refinement (Data::refine): q̈ += H⁻¹ r with H⁻¹ applied by a pass with
-// no bias terms (p_bias = 0, c = 0, τ = r) over the kinematics and inertias already computed.
+// The bias half of one node's assembly, for the correction pass of Data::refine (p_bias = 0, c = 0,
+// τ = r): the matrices (Φ, W, the leaf-form and cluster factors) depend on the poses and inertias
+// only, which the correction shares with the pass, so only the vectors are recomputed — 6×6
+// products with vectors instead of the assembly's 6×6×5 ones. Each form keeps its own formulas, so
+// the correction is as accurate as the pass (a mobility-form β at a light leaf loses ~‖Φ_L‖/‖Φ_C‖,
+// 10¹² at a 10¹² mass ratio, and made the refinement diverge there). Inertia-form cluster nodes are
+// reassembled whole (their bias terms need the factors of M and U; one per weld).
+// A light-leaf node (p = c' = 0): f_J0 = Y b_O + G τ', O's acceleration a_O = b_O − B̂ f_J0, and L's
+// a_L = a_O + S q̈' from its joint-space equation K_ss q̈' = Sᵀ f_J0 − (KS)ᵀ a_O (leaf_form_top_down).
+void leaf_form_bias(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) {
+  const auto& t = m.tree;
+  const LeafSides ls = leaf_sides(m, node, d.leaf_side[node]);
+  const int J = t.joint[node], hO = t.handle_num[ls.O];
+  JointMat S, T, Dj;
+  joint_subspaces(m, d, J, S, T, Dj);
+  const int nJ = static_cast<int>(S.cols());
+  const Vec6 bO = d.b(ls.O, ls.sO);
+  Vec6 fJ0 = d.W[node] * bO;
+  if (nJ > 0) fJ0.noalias() += d.leaf_G[d.leaf_adr[node]].leftCols(nJ) * (ls.sigma * tau.segment(m.v_adr[J], nJ));
+  const Vec6 aO = bO - d.Phi(ls.O, hO, ls.sO, ls.sO) * fJ0;
+  Vec6 aL0 = aO;
+  if (nJ > 0) {
+    Mat6 K;
+    Vec6 p;
+    leaf_inertia_at_joint(d, ls.b, J, K, p);
+    const JointMat KS = K * S;
+    const JointVec rhs = S.transpose() * fJ0 - KS.transpose() * aO;
+    const JointSq Kss = S.transpose() * KS;
+    aL0.noalias() += S * JointVec(Eigen::LLT<JointSq>(Kss).solve(rhs));
+  }
+  d.beta[node] = ls.sigma * fJ0;
+  d.taut[node].setZero();
+  const int P = t.P[node], hP = t.handle_num[P], hC = t.handle_num[node];
+  for (int c = 0; c < hC; ++c) {
+    int ch, sl;
+    if (c < hP - 1) {
+      ch = P;
+      sl = c < t.slot_j[node] ? c : c + 1;
+    } else {
+      ch = t.Q[node];
+      const int l = c - (hP - 1);
+      sl = l < t.slot_k[node] ? l : l + 1;
+    }
+    if (ch == ls.L)
+      d.b(node, c) = shift_motion(aL0, leaf_handle_offset(d, ls.b, J, t.handle(ls.L, sl)));
+    else
+      d.b(node, c).noalias() = d.b(ls.O, sl) - d.Phi(ls.O, hO, sl, ls.sO) * fJ0;
+  }
+}
+
+void bias_assemble_node(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) {
+  const auto& t = m.tree;
+  if (t.is_leaf(node)) {
+    const int k = t.body[node], h = t.handle_num[node];
+    if (k == 0) {
+      for (int x = 0; x < h; ++x) d.b(node, x).setZero();
+      return;
+    }
+    const Vec6 a0 = d.Iinv[k] * d.p_bias[k];
+    for (int x = 0; x < h; ++x) {
+      const int jx = t.handle(node, x);
+      d.b(node, x) = jx == k ? a0 : shift_motion(a0, d.d[jx]);
+    }
+    return;
+  }
+  if (m.cluster_index[node] < 0 && !d.leaf_side.empty() && d.leaf_side[node]) {
+    leaf_form_bias(m, d, node, tau);
+    return;
+  }
+  const int P = t.P[node], Q = t.Q[node], J = t.joint[node];
+  const int j = t.slot_j[node], k = t.slot_k[node];
+  const int hP = t.handle_num[P], hQ = t.handle_num[Q];
+  const Mat6& W = d.W[node];
+  Vec6& taut = d.taut[node];
+  const int nJ = m.v_num[J];
+  if (nJ > 0) {
+    Vec6 Dtau;
+    if (m.joint_type[J] == JointType::kRevolute || m.joint_type[J] == JointType::kPrismatic) {
+      Dtau = d.S[J] * tau(m.v_adr[J]);
+    } else {
+      JointMat S, T, D;
+      joint_subspaces(m, d, J, S, T, D);
+      Dtau = D * tau.segment(m.v_adr[J], nJ);
+    }
+    const Vec6 PhDtau = d.Phi(P, hP, j, j) * Dtau + d.Phi(Q, hQ, k, k) * Dtau;
+    taut = Dtau - W * PhDtau;
+  } else {
+    taut.setZero();
+  }
+  const Vec6 beta = W * (d.c[J] - d.b(Q, k) + d.b(P, j)) + taut;
+  d.beta[node] = beta;
+  if (m.cluster_index[node] >= 0) {
+    assemble_inertia_form(m, d, node, tau);
+    return;
+  }
+  int ci = 0;
+  for (int i = 0; i < hP; ++i)
+    if (i != j) d.b(node, ci++).noalias() = d.b(P, i) - d.Phi(P, hP, i, j) * beta;
+  for (int l = 0; l < hQ; ++l)
+    if (l != k) d.b(node, ci++).noalias() = d.b(Q, l) + d.Phi(Q, hQ, l, k) * beta;
+}
+
+// The pass's bias terms and node vectors against the correction's (O(1) swaps of buffers).
+void swap_bias_terms(Data& d) {
+  std::swap(d.p_bias, d.refine_p);
+  std::swap(d.c, d.refine_c);
+  std::swap(d.b_buf, d.refine_b_buf);
+  std::swap(d.f_buf, d.refine_f_buf);
+  std::swap(d.beta, d.refine_beta);
+  std::swap(d.taut, d.refine_taut);
+  std::swap(d.cp, d.refine_cp);
+  std::swap(d.cpA, d.refine_cpA);
+  std::swap(d.cqa, d.refine_cqa);
+  std::swap(d.ca, d.refine_ca);
+  std::swap(d.cb, d.refine_cb);
+}
+
+// One step of iterative refinement (Data::refine): q̈ += H⁻¹ r, H⁻¹ applied by the bias half of
+// the assembly (no p_bias, no c, τ = r) and a top-down over the factors the pass left.
 void refine_step(const Model& m, Data& d, const State& st) {
   d.refine_qdd = d.qdd;
   // kExtended: every operation in long double from q, kinematics included (x87's 64-bit
@@ -1305,22 +1432,23 @@ void refine_step(const Model& m, Data& d, const State& st) {
     inverse_dynamics_residual_in(m, st, d.refine_qdd, d.refine_x, d.refine_r);
   else
     inverse_dynamics_residual(m, d, st.tau, d.refine_qdd);
-  for (int k = 0; k < m.nbodies; ++k) {
-    d.refine_p[k] = d.p_bias[k];
-    d.refine_c[k] = d.c[k];
-    d.p_bias[k].setZero();
-    d.c[k].setZero();
-  }
+  swap_bias_terms(d);
   const auto& t = m.tree;
-  cluster_offsets(m, d);
-  for (int node = t.nnodes() - 1; node >= 0; --node) dca_bottom_up_node(m, d, node, d.refine_r);
+  for (int node = t.nnodes() - 1; node >= 0; --node) bias_assemble_node(m, d, node, d.refine_r);
   const Diagnostics keep = d.diag;
   dca_top_down(m, d);
   d.diag.nodes_bottom_up = keep.nodes_bottom_up;
-  d.qdd += d.refine_qdd;
-  for (int k = 0; k < m.nbodies; ++k) {
-    d.p_bias[k] = d.refine_p[k];
-    d.c[k] = d.refine_c[k];
+  d.diag.nodes_top_down = keep.nodes_top_down;
+  d.diag.nonfinite = keep.nonfinite;   // δ's are judged below
+  swap_bias_terms(d);
+  // A correction larger than q̈ itself (or not finite) means the pass had no digits to recover:
+  // one step cannot be trusted there (its solve is as wrong as the pass), so q̈ stays the pass's.
+  const double dq = d.qdd.lpNorm<Eigen::Infinity>(), q0 = d.refine_qdd.lpNorm<Eigen::Infinity>();
+  if (std::isfinite(dq) && dq <= q0) {
+    d.qdd += d.refine_qdd;
+  } else {
+    d.qdd = d.refine_qdd;
+    ++d.diag.refine_rejected;
   }
 }
 

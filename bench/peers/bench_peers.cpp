@@ -43,7 +43,7 @@ std::map<std::string, Factory> factories() {
   std::map<std::string, Factory> f;
   f["haptree"] = peers::make_haptree_engine;
   f["haptree_auto"] = peers::make_haptree_auto_engine;
-  f["haptree_refine"] = peers::make_haptree_refine_engine;
+  f["haptree_plain"] = peers::make_haptree_plain_engine;
   f["haptree_exact"] = peers::make_haptree_exact_engine;
 #ifdef HAPTREE_PEER_MUJOCO
   f["mujoco"] = [](const Model& m) { return peers::make_mujoco_engine(m, false); };
@@ -265,11 +265,10 @@ int main(int argc, char** argv) {
   // fullinertia costs accuracy.
   const bool diag_explicit =
       std::find(engines.begin(), engines.end(), "mujoco_diaginertia") != engines.end();
-  // haptree_refine (Refinement::kDouble, issue 14.2) only when asked for; haptree_exact
-  // (kExtended, the accurate setting) by default, beside the plain pass.
+  // Every engine by default: haptree (the library default, one refinement step), haptree_plain
+  // (the single pass, issue 13.4's speed figure) and haptree_exact (kExtended) side by side.
   if (engines.empty())
-    for (auto& [name, f] : all)
-      if (name != "haptree_refine") engines.push_back(name);
+    for (auto& [name, f] : all) engines.push_back(name);
   for (const char* p : {"mujoco", "simbody", "bullet"})
     if (!all.count(p)) std::printf("peer %s: not compiled in (library not found at build time), skipped\n", p);
 

@@ -27,7 +27,7 @@ class PeerEngine {
 std::unique_ptr<PeerEngine> make_haptree_engine(const Model& model);
 // forward_dynamics with set_dca_threads(…, 0): parallel passes where they pay (issue 13.4).
 std::unique_ptr<PeerEngine> make_haptree_auto_engine(const Model& model);
-std::unique_ptr<PeerEngine> make_haptree_refine_engine(const Model& model);
+std::unique_ptr<PeerEngine> make_haptree_plain_engine(const Model& model);
 std::unique_ptr<PeerEngine> make_haptree_exact_engine(const Model& model);
 #ifdef HAPTREE_PEER_MUJOCO
 // diaginertia = false: <inertial fullinertia=…> (MuJoCo's compiler finds the principal axes);

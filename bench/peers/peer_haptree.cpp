@@ -9,15 +9,16 @@ namespace {
 class HaptreeEngine final : public PeerEngine {
  public:
   // threads: set_dca_threads (1 = serial; 0 = automatic, "haptree_auto").
-  // refine: Data::refine (one step of iterative refinement, issue 14.2): "haptree_refine" with the
-  // residual in double, "haptree_exact" with it in long double from q (Refinement::kExtended).
-  HaptreeEngine(const Model& m, int threads, Refinement refine = Refinement::kOff)
+  // refine: Data::refine (issue 14.2): "haptree" is the library's default (kDouble, one refinement
+  // step with the residual in double), "haptree_plain" the single pass (kOff), "haptree_exact" the
+  // residual in long double from q (kExtended).
+  HaptreeEngine(const Model& m, int threads, Refinement refine = Refinement::kDouble)
       : model_(m), data_(m), threads_(threads) {
     set_dca_threads(m, data_, threads);
     set_refinement(m, data_, refine);
   }
   std::string name() const override {
-    if (data_.refine == Refinement::kDouble) return "haptree_refine";
+    if (data_.refine == Refinement::kOff) return "haptree_plain";
     if (data_.refine == Refinement::kExtended) return "haptree_exact";
     return threads_ == 1 ? "haptree" : "haptree_auto";
   }
@@ -41,8 +42,8 @@ std::unique_ptr<PeerEngine> make_haptree_engine(const Model& model) {
 std::unique_ptr<PeerEngine> make_haptree_auto_engine(const Model& model) {
   return std::make_unique<HaptreeEngine>(model, 0);
 }
-std::unique_ptr<PeerEngine> make_haptree_refine_engine(const Model& model) {
-  return std::make_unique<HaptreeEngine>(model, 1, Refinement::kDouble);
+std::unique_ptr<PeerEngine> make_haptree_plain_engine(const Model& model) {
+  return std::make_unique<HaptreeEngine>(model, 1, Refinement::kOff);
 }
 std::unique_ptr<PeerEngine> make_haptree_exact_engine(const Model& model) {
   return std::make_unique<HaptreeEngine>(model, 1, Refinement::kExtended);

@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 
 #include <Eigen/Eigenvalues>
 
@@ -119,7 +120,8 @@ INSTANTIATE_TEST_SUITE_P(
              (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "");
     });
 
-// Data::refine (issue 14.2): one step of iterative refinement, r = τ − ID(q̈), q̈ += H⁻¹ r. The
+// Data::refine (issue 14.2; kDouble by default): one step of iterative refinement, r = τ − ID(q̈),
+// q̈ += H⁻¹ r (H⁻¹ by the bias half of the assembly over the pass's factors). The
 // inverse dynamics is backward stable, so the refined q̈ is the exact solution of a problem
 // perturbed by O(n·ε) and must meet the backward-stability bound c·n·ε·κ₂(H)·cancel
 // (qdd_error_bound, kBoundC). That bound is loose (κ₂ of a long chain is 1e9), so it must also be
@@ -154,10 +156,27 @@ TEST_P(DcaRefine, RefinedMatchesOracle) {
   const State st = random_state(*model, 7);
   const auto ref = oracle_forward_dynamics(*model, st);
   Data d(*model);
+  EXPECT_EQ(d.refine, Refinement::kDouble);   // the library's default
+  set_refinement(*model, d, Refinement::kOff);
   const Eigen::VectorXd plain = forward_dynamics(*model, d, st);
+  // The node coefficients of the single pass (the coupling snapshot's inputs), to compare below.
+  const Data kept = d;
   set_refinement(*model, d, Refinement::kDouble);
   const Eigen::VectorXd refined = forward_dynamics(*model, d, st);
   EXPECT_EQ(d.diag.singular_pivots, 0);
+  // The correction pass runs on swapped buffers: every coefficient the pass left is unchanged,
+  // bit for bit, and only q̈ moved (the correction's own Φ equals the pass's: same factors).
+  EXPECT_EQ(d.Phi_buf, kept.Phi_buf);
+  EXPECT_EQ(d.b_buf, kept.b_buf);
+  EXPECT_EQ(d.f_buf, kept.f_buf);
+  auto same6 = [](const std::vector<Vec6>& a, const std::vector<Vec6>& b) {
+    return a.size() == b.size() && std::memcmp(a.data(), b.data(), sizeof(Vec6) * a.size()) == 0;
+  };
+  EXPECT_TRUE(same6(d.beta, kept.beta) && same6(d.taut, kept.taut) && same6(d.p_bias, kept.p_bias) &&
+              same6(d.c, kept.c) && same6(d.cb, kept.cb) && same6(d.ca, kept.ca) &&
+              same6(d.cp, kept.cp) && same6(d.cqa, kept.cqa))
+      << c.scene;
+  EXPECT_TRUE(same6(d.refine_p, std::vector<Vec6>(d.refine_p.size(), Vec6::Zero())));
   const double e0 = rel_err(plain, ref.qdd), e1 = rel_err(refined, ref.qdd);
   const double bound = testing::qdd_error_bound(ref, st, testing::kBoundC);
   EXPECT_LE(e1, bound) << c.scene;
