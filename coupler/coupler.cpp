@@ -127,33 +127,33 @@ Coupler::Coupler(bus::Bus& bus, const CouplerOptions& options)
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
   ch_user_force_ = bus::channel::user_force(opt_.user, opt_.channel_suffix);
   ch_stats_ = bus::channel::stats("coupler_" + std::to_string(opt_.user), opt_.channel_suffix);
-  bus_.subscribe_raw(bus::channel::coeffs(opt_.user, opt_.channel_suffix),
-                     [this](const void* d, uint32_t n, const std::string&) { on_snapshot(d, n); });
+  subs_(bus_.subscribe_raw(bus::channel::coeffs(opt_.user, opt_.channel_suffix),
+                     [this](const void* d, uint32_t n, const std::string&) { on_snapshot(d, n); }));
   const std::string ch_pose = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   if (opt_.shm) {
     shm_pose_ = std::make_unique<bus::ShmReader>(ch_pose, opt_.stale_after_s);   // no pose of a dead device
     shm_feedback_ = std::make_unique<bus::ShmWriter>(ch_feedback_);
     shm_feedback_check_ = std::make_unique<bus::ShmReader>(ch_feedback_);
   } else {
-    bus_.subscribe<lcmt_device_state>(ch_pose, [this](const lcmt_device_state& m, const std::string&) {
+    subs_(bus_.subscribe<lcmt_device_state>(ch_pose, [this](const lcmt_device_state& m, const std::string&) {
       const double t = since(kEpoch);
       if (!take_pose(m, t)) return;
       pose_box_.write(m);
       pose_recv_s_.store(t, std::memory_order_release);
-    });
+    }));
     // One writer per device FEEDBACK channel over LCM too (shm: the segment check in publish_stats): a FEEDBACK
     // of another live instance is a second coupler on this device. Peeked from the header, not decoded (our
     // own come back at the loop rate; run() delivers them in a window after each stats tick only); an old
     // stamp is a replay, not a writer.
-    feedback_check_ = &bus_.subscribe_raw(ch_feedback_, [this](const void* d, uint32_t n, const std::string&) {
+    feedback_check_ = &subs_(bus_.subscribe_raw(ch_feedback_, [this](const void* d, uint32_t n, const std::string&) {
       int64_t utime = 0, inst = 0;
       if (!bus::peek_origin<lcmt_feedback>(d, n, &utime, &inst) || inst == instance_id_ || inst == 0) return;
       if (!(std::fabs(bus::message_age_s(utime)) <= bus::OriginLock::kDefaultMaxStartAgeS)) return;
       c_.other_feedback_writer.fetch_add(1, std::memory_order_relaxed);
       refused_writer_.store(inst, std::memory_order_relaxed);
-    });
+    }));
   }
-  bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_);
+  subs_(bus_.subscribe_latest<lcmt_scene_state>(bus::channel::scene_state(opt_.channel_suffix), scene_box_));
   ch_settings_ = bus::channel::coupler_settings(opt_.user, opt_.channel_suffix);
   // Stamped with the FEEDBACK's instance id: a replay takes each FEEDBACK's settings from its own coupler,
   // not from whichever settings message came last (a replayed one of another coupler, chaos_soak).

@@ -155,6 +155,8 @@ class Coupler {
   static constexpr double kSettingsEvery_s = 5.0;
   lcmt_coupler_settings settings_msg_{};
   std::string ch_settings_;
+  // Last member: destroyed first, so no callback (they capture this) runs into freed members.
+  bus::SubscriptionGuard subs_;
 };
 
 // The settings message of a coupler's options, and back (replay_coupling). to_settings stamps it.

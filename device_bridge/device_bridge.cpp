@@ -63,12 +63,12 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
     // Never a FEEDBACK older than the feedback timeout, nor one of a dead or earlier coupler.
     shm_feedback_ = std::make_unique<bus::ShmReader>(ch_feedback_, opt_.feedback_timeout_s);
   } else {
-    bus_.subscribe<lcmt_feedback>(ch_feedback_, [this](const lcmt_feedback& m, const std::string&) {
+    subs_(bus_.subscribe<lcmt_feedback>(ch_feedback_, [this](const lcmt_feedback& m, const std::string&) {
       const double t = now_s();
       if (!from_followed_coupler(m, t)) return;
       fb_box_.write(m);
       on_feedback(m, t);
-    });
+    }));
   }
   spdlog::info("device_bridge {}: '{}' at {} Hz over {}", opt_.device, opt_.kind, opt_.rate_hz,
                opt_.shm ? "shared memory" : bus_.url());

@@ -97,6 +97,8 @@ class DeviceBridge {
   std::atomic<int64_t> readings_{0}, feedbacks_{0};
   std::atomic<double> last_force_n_{0}, max_force_n_{0}, max_force_step_n_{0}, feedback_time_s_{-1};
   FeedbackRenderer renderer_;      // loop thread: feedback -> the force written to the device
+  // Last member: destroyed first, so no callback (they capture this) runs into freed members.
+  bus::SubscriptionGuard subs_;
 };
 
 }  // namespace haptree

@@ -123,7 +123,7 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
     slot->origin = bus::OriginLock(opt_.user_force_stale_s);
     slot->watchdog = Watchdog(WatchdogParams{opt_.user_force_stale_s, opt_.user_force_ramp_s, 0.1});
     // Handler thread: one coupler per user (a second live one is refused), reordered messages dropped.
-    bus_.subscribe<lcmt_user_force>(
+    subs_(bus_.subscribe<lcmt_user_force>(
         bus::channel::user_force(u, opt_.channel_suffix), [this, slot = slot.get()](const lcmt_user_force& m, const std::string&) {
           const bus::Origin o = slot->origin.check(m.instance_id, since_epoch(), bus::message_age_s(m.utime));
           if (!bus::accepted(o)) {
@@ -150,7 +150,7 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
           slot->newest_seq = m.seq;
           slot->box.write(m);
           c_.user_forces_in.fetch_add(1, std::memory_order_relaxed);
-        });
+        }));
     users_.push_back(std::move(slot));
   }
   forward_kinematics(*model_, *data_, state_->q);

@@ -143,6 +143,8 @@ class SimServer {
   std::atomic<double> step_ms_{0};
   std::atomic<int> active_dofs_{0};
   std::atomic<size_t> snapshot_bytes_{0};
+  // Last member: destroyed first, so no callback (they capture this) runs into freed members.
+  bus::SubscriptionGuard subs_;
 };
 
 }  // namespace haptree

@@ -175,6 +175,8 @@ struct Viewer::Impl {
   void publish_pointer(const Client& c, bool button);
   void tick();
   void schedule();
+  // Last member: destroyed first, so no bus callback (they capture this) runs into freed members.
+  bus::SubscriptionGuard subs;
 };
 
 void Viewer::Impl::load_scene() {
@@ -258,7 +260,7 @@ void Viewer::Impl::load_scene() {
 
 void Viewer::Impl::subscribe() {
   const std::string& sfx = opt.channel_suffix;
-  bus.subscribe<lcmt_scene_state>(bus::channel::scene_state(sfx), [this](const lcmt_scene_state& m, const std::string&) {
+  subs(bus.subscribe<lcmt_scene_state>(bus::channel::scene_state(sfx), [this](const lcmt_scene_state& m, const std::string&) {
     std::lock_guard<std::mutex> lock(mutex);
     if (m.total_bodies != model->nbodies || m.first_body < 0 || m.first_body + m.nbodies > m.total_bodies) {
       if (wrong_size++ == 0)
@@ -287,9 +289,9 @@ void Viewer::Impl::subscribe() {
     neglected = m.neglected_metric;
     active_dofs = m.active_dofs;
     ++scene_msgs;
-  });
+  }));
   for (int u = 0; u < opt.users; ++u) {
-    bus.subscribe_raw(bus::channel::user_force(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+    subs(bus.subscribe_raw(bus::channel::user_force(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
       if (!due(users[u].next_user_force_s)) return;
       thread_local lcmt_user_force m;
       if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
@@ -299,8 +301,8 @@ void Viewer::Impl::subscribe() {
       s.uf_body = s.uf_active ? m.grab_body : 0;
       s.uf_point = Vec3(m.grab_point[0], m.grab_point[1], m.grab_point[2]);
       if (!s.uf_point.allFinite()) s.uf_active = false;
-    });
-    bus.subscribe_raw(bus::channel::device_state(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+    }));
+    subs(bus.subscribe_raw(bus::channel::device_state(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
       if (!due(users[u].next_device_s)) return;
       thread_local lcmt_device_state m;
       if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
@@ -312,8 +314,8 @@ void Viewer::Impl::subscribe() {
       users[u].buttons = m.buttons;
       users[u].device_grab_body = m.grab_body;
       users[u].device_grab_seq = m.grab_seq;
-    });
-    bus.subscribe_raw(bus::channel::feedback(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
+    }));
+    subs(bus.subscribe_raw(bus::channel::feedback(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
       if (!due(users[u].next_feedback_s)) return;
       thread_local lcmt_feedback m;
       if (bus::decode_checked(d, n, m) != bus::DecodeResult::kOk) return;
@@ -322,8 +324,8 @@ void Viewer::Impl::subscribe() {
       users[u].have_feedback = true;
       users[u].force_n = f.allFinite() ? f : Vec3::Zero();
       users[u].flags = m.flags;
-    });
-    bus.subscribe<lcmt_process_stats>(bus::channel::stats("coupler_" + std::to_string(u), sfx),
+    }));
+    subs(bus.subscribe<lcmt_process_stats>(bus::channel::stats("coupler_" + std::to_string(u), sfx),
                                       [this, u](const lcmt_process_stats& m, const std::string&) {
       std::lock_guard<std::mutex> lock(mutex);
       UserSlot& s = users[u];
@@ -345,14 +347,14 @@ void Viewer::Impl::subscribe() {
           s.max_force_n = ex.count("max_force_n") ? ex["max_force_n"] : 0.0;
         }
       }
-    });
+    }));
   }
-  bus.subscribe<lcmt_process_stats>(bus::channel::stats("sim_server", sfx), [this](const lcmt_process_stats& m, const std::string&) {
+  subs(bus.subscribe<lcmt_process_stats>(bus::channel::stats("sim_server", sfx), [this](const lcmt_process_stats& m, const std::string&) {
     std::lock_guard<std::mutex> lock(mutex);
     sim_rate = m.loop_rate_hz;
     for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i)
       if (m.extra_names[i] == "resets") sim_resets = m.extra_values[i];
-  });
+  }));
 }
 
 void Viewer::Impl::start_server() {

@@ -167,12 +167,12 @@ int Bus::publish_raw(const std::string& channel, const void* data, int size) noe
 RawSubscription& Bus::subscribe_raw(const std::string& channel, RawSubscription::Callback cb) {
   auto sub = std::make_unique<RawSubscription>(channel, std::move(cb));
   auto* raw = sub.get();
+  raw->auth = auth_.get();   // before the first message can arrive
   {
     std::lock_guard<std::mutex> lock(delivery_mutex());
     raw->c_subscription =
         lcm_subscribe(lcm_->getUnderlyingLCM(), channel.c_str(), &RawSubscription::dispatch, raw);
   }
-  raw->auth = auth_.get();
   add(std::move(sub));
   return *raw;
 }
@@ -181,6 +181,7 @@ std::mutex& delivery_mutex() {
   static std::mutex m;
   return m;
 }
+std::mutex& Bus::subscribe_mutex() { return delivery_mutex(); }
 
 void set_delivery(Bus& bus, RawSubscription& sub, bool on) {
   std::lock_guard<std::mutex> lock(delivery_mutex());

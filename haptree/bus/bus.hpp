@@ -58,9 +58,58 @@ class SubscriptionBase {
   lcm_subscription_t* c_subscription = nullptr;
   Authenticator* auth = nullptr;   // the Bus's, in a keyed session: messages are verified and stripped
 
+  // Stops delivery for good: waits for a callback running on a handler thread to return; none runs
+  // after. The Subscription lives as long as the Bus, but its callback usually captures its owner (a
+  // SimServer, a Coupler): an owner destroyed while the Bus dispatches must close first, or the next
+  // message calls into freed memory (embedded_test's second SimServer, destroyed with the coupler
+  // still publishing: SIGSEGV). Not from inside this subscription's own callback.
+  void close() noexcept {
+    for (int e = 0; !gate_.compare_exchange_weak(e, kClosed, std::memory_order_acq_rel); e = 0) {
+      if (e == kClosed) return;
+      std::this_thread::yield();
+    }
+  }
+  bool closed() const noexcept { return gate_.load(std::memory_order_acquire) == kClosed; }
+
  protected:
+  // One callback at a time, and none once closed: a lock-free gate (no mutex on the handler thread).
+  struct Entry {
+    explicit Entry(std::atomic<int>& g) noexcept : gate(g) {
+      int e = kOpen;
+      ok = gate.compare_exchange_strong(e, kBusy, std::memory_order_acquire);
+    }
+    ~Entry() {
+      if (ok) gate.store(kOpen, std::memory_order_release);
+    }
+    std::atomic<int>& gate;
+    bool ok = false;
+  };
+  static constexpr int kOpen = 0, kBusy = 1, kClosed = 2;
   std::string channel_;
   ChannelStats stats_;
+  std::atomic<int> gate_{kOpen};
+};
+
+// The subscriptions an object made, closed when it is destroyed: call close_all() first thing in its
+// destructor (its callbacks capture it), or make this its last member.
+class SubscriptionGuard {
+ public:
+  SubscriptionGuard() = default;
+  SubscriptionGuard(const SubscriptionGuard&) = delete;
+  SubscriptionGuard& operator=(const SubscriptionGuard&) = delete;
+  ~SubscriptionGuard() { close_all(); }
+  template <class S>
+  S& operator()(S& sub) {
+    subs_.push_back(&sub);
+    return sub;
+  }
+  void close_all() noexcept {
+    for (SubscriptionBase* s : subs_) s->close();
+    subs_.clear();
+  }
+
+ private:
+  std::vector<SubscriptionBase*> subs_;
 };
 
 // Keyed session: verifies and strips the trailer (*size becomes the payload size); counts a rejection.
@@ -81,6 +130,8 @@ class Subscription final : public SubscriptionBase {
   Subscription(std::string channel, Callback cb) : SubscriptionBase(std::move(channel)), cb_(std::move(cb)) {}
 
   void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
+    const Entry entry(gate_);
+    if (!entry.ok) return;
     stats_.received.fetch_add(1, std::memory_order_relaxed);
     size_t size = rbuf->data_size;
     if (!authentic(auth, channel, rbuf->data, &size, stats_)) return;
@@ -116,6 +167,8 @@ class RawSubscription final : public SubscriptionBase {
     static_cast<RawSubscription*>(self)->on_raw(&rb, std::string(channel));
   }
   void on_raw(const lcm::ReceiveBuffer* rbuf, const std::string& channel) noexcept {
+    const Entry entry(gate_);
+    if (!entry.ok) return;
     stats_.received.fetch_add(1, std::memory_order_relaxed);
     size_t size = rbuf->data_size;
     if (!authentic(auth, channel, rbuf->data, &size, stats_)) return;
@@ -171,8 +224,13 @@ class Bus {
   Subscription<T>& subscribe(const std::string& channel, typename Subscription<T>::Callback cb) {
     auto sub = std::make_unique<Subscription<T>>(channel, std::move(cb));
     auto* raw = sub.get();
-    raw->lcm_subscription = lcm_->subscribe(channel, &Subscription<T>::on_raw, raw);
-    raw->auth = auth_.get();
+    raw->auth = auth_.get();   // before the first message can arrive
+    {
+      // lcm::LCM's own list of subscriptions is unguarded: two threads subscribing at once (a
+      // component constructed while another starts) would race on it.
+      std::lock_guard<std::mutex> lock(subscribe_mutex());
+      raw->lcm_subscription = lcm_->subscribe(channel, &Subscription<T>::on_raw, raw);
+    }
     add(std::move(sub));
     return *raw;
   }
@@ -182,6 +240,7 @@ class Bus {
     return subscribe<T>(channel, [&box](const T& m, const std::string&) { box.write(m); });
   }
   RawSubscription& subscribe_raw(const std::string& channel, RawSubscription::Callback cb);
+  static std::mutex& subscribe_mutex();   // = delivery_mutex() (delivery.hpp)
 
   // Handles at most one message, waiting up to timeout_ms. >0 handled, 0 timeout, <0 error.
   int handle_timeout(int timeout_ms) noexcept;

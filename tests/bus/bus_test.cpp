@@ -243,5 +243,53 @@ TEST(Bus, RawDeliveryToggledWhileTheHandlerThreadDispatches) {
   EXPECT_EQ(thread.errors(), 0);
 }
 
+// An owner destroyed while the Bus dispatches (a SimServer replaced on a running bus, a component
+// shut down before the handler thread) closes its subscriptions first: close() waits for a callback
+// in progress and none runs after it (embedded_test's second SimServer crashed without it: its
+// USER_FORCE callback ran on the freed server). Typed and raw, while a publisher keeps sending.
+TEST(Bus, ClosedSubscriptionsNeverCallBackAgain) {
+  Bus bus("memq://");
+  std::atomic<int> running{0};
+  std::atomic<bool> closed{false};
+  std::atomic<int64_t> calls{0}, after_close{0};
+  auto body = [&] {
+    running.fetch_add(1);
+    if (closed.load()) after_close.fetch_add(1);
+    calls.fetch_add(1);
+    std::this_thread::sleep_for(200us);   // a callback in progress while close() is called
+    running.fetch_sub(1);
+  };
+  auto& raw = bus.subscribe_raw("CLOSE_RAW", [&](const void*, uint32_t, const std::string&) { body(); });
+  auto& typed = bus.subscribe<lcmt_feedback>("CLOSE_TYPED", [&](const lcmt_feedback&, const std::string&) { body(); });
+  HandlerThread thread(bus, 1);
+  std::atomic<bool> stop{false};
+  std::thread publisher([&] {
+    lcmt_feedback f{};
+    stamp(f, 1, 1);
+    unsigned char msg[16] = {};
+    while (!stop.load()) {
+      bus.publish_raw("CLOSE_RAW", msg, sizeof msg);
+      bus.publish("CLOSE_TYPED", f);
+      std::this_thread::sleep_for(50us);
+    }
+  });
+  const auto deadline = std::chrono::steady_clock::now() + 5s;
+  while (calls.load() < 200 && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(1ms);
+  ASSERT_GE(calls.load(), 200);
+  raw.close();
+  typed.close();
+  EXPECT_EQ(running.load(), 0);   // close() returned: no callback is running
+  closed = true;
+  const int64_t at_close = calls.load();
+  std::this_thread::sleep_for(100ms);   // the publisher goes on
+  stop = true;
+  publisher.join();
+  thread.stop();
+  EXPECT_EQ(after_close.load(), 0);
+  EXPECT_EQ(calls.load(), at_close);
+  EXPECT_TRUE(raw.closed() && typed.closed());
+  raw.close();   // idempotent
+}
+
 }  // namespace
 }  // namespace haptree::bus
