@@ -80,6 +80,13 @@ int main(int argc, char** argv) {
                  "logarithmic; exact (pieces are assembled in inertia form). 0: off; use it for "
                  "hubs with dozens of children")->capture_default_str();
   app.add_option("--indent", indent, "JSON indent (-1: one line)")->capture_default_str();
+  std::string refine = "double";
+  app.add_option("--refine", refine,
+                 "iterative refinement of qdd: off (one pass, 1.2-1.3x faster), double (one step, "
+                 "residual in double: within 1e-12 on trees and proteins), extended (residual in "
+                 "long double from q: the inputs' own solution, about 2x)")
+      ->check(CLI::IsMember({"off", "double", "extended"}))
+      ->capture_default_str();
   app.footer(kFooter);
   CLI11_PARSE(app, argc, argv);
 
@@ -112,6 +119,10 @@ int main(int argc, char** argv) {
     st.q = haptree::neutral_configuration(*model);
     if (!state_path.empty()) st = haptree::io::load_state_json(*model, state_path);
     haptree::Data data(*model);
+    haptree::set_refinement(*model, data,
+                            refine == "off"        ? haptree::Refinement::kOff
+                            : refine == "extended" ? haptree::Refinement::kExtended
+                                                   : haptree::Refinement::kDouble);
     const Eigen::VectorXd& qdd = haptree::forward_dynamics(*model, data, st);
     std::cout << haptree::io::dump_json_exact(haptree::io::qdd_to_json(*model, qdd), indent)
               << "\n";
