@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <type_traits>
 
 namespace haptree {
 
@@ -580,6 +581,33 @@ using KMat = Eigen::Matrix<double, R, C,
                            (R == 1 && C != 1) ? Eigen::RowMajor : Eigen::ColMajor,
                            R == Eigen::Dynamic ? 6 : R, C == Eigen::Dynamic ? 6 : C>;
 
+// Inverse of a small fixed-size matrix by Gauss-Jordan elimination with partial (row) pivoting: the
+// pivoting of Eigen's PartialPivLU, without the general blocked triangular solves its inverse()
+// runs at these sizes (which cost more than the factorisation; the light leaf's hot spot).
+template <int N>
+Eigen::Matrix<double, N, N> pivoted_inverse(Eigen::Matrix<double, N, N> A) {
+  Eigen::Matrix<double, N, N> X = Eigen::Matrix<double, N, N>::Identity();
+  for (int c = 0; c < N; ++c) {
+    int piv = c;
+    for (int r = c + 1; r < N; ++r)
+      if (std::abs(A(r, c)) > std::abs(A(piv, c))) piv = r;
+    if (piv != c) {
+      A.row(c).swap(A.row(piv));
+      X.row(c).swap(X.row(piv));
+    }
+    const double inv = 1.0 / A(c, c);
+    A.row(c) *= inv;
+    X.row(c) *= inv;
+    for (int r = 0; r < N; ++r) {
+      if (r == c) continue;
+      const double f = A(r, c);
+      A.row(r) -= f * A.row(c);
+      X.row(r) -= f * X.row(c);
+    }
+  }
+  return X;
+}
+
 // The leaf-form kernel for nJ = NJ, nc = NC (Eigen::Dynamic for both: any joint). Writes R, Y, F
 // and the bias terms f_J0 and a_L0 (no handle forces). Fixed sizes for the revolute/prismatic case
 // are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x (benchmarks_dca.md).
@@ -596,22 +624,34 @@ void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointM
   const KMat<NC, NC> Ktt = T.transpose() * KT;
   const KMat<NJ, NC> Kst = S.transpose() * KT;
   const KMat<NJ, NJ> Kss = S.transpose() * KS;
-  const Eigen::PartialPivLU<KMat<NC, NC>> lu(KMat<NC, NC>(KMat<NC, NC>::Identity(nc, nc) + Ktt * B));
-  const KMat<NC, NC> E = lu.inverse();
+  const KMat<NC, NC> IKB = KMat<NC, NC>::Identity(nc, nc) + Ktt * B;
+  KMat<NC, NC> E;
+  if constexpr (NC == Eigen::Dynamic) E = Eigen::PartialPivLU<KMat<NC, NC>>(IKB).inverse();
+  else E = pivoted_inverse<NC>(IKB);
   KMat<NC, NC> G = B * E;
   G = 0.5 * (G + G.transpose());
   const KMat<NJ, NC> KstH = Kst * E.transpose();
   KMat<NJ, NJ> N = Kss - Kst * G * Kst.transpose();
   N = 0.5 * (N + N.transpose());
-  const Eigen::LLT<KMat<NJ, NJ>> llt(N);
+  // N⁻¹ applied to a right-hand side: for one DOF a division (Eigen's LLT would take its general
+  // triangular-solve path for a 1×1 factor).
+  const Eigen::LLT<KMat<NJ, NJ>> llt = NJ == 1 ? Eigen::LLT<KMat<NJ, NJ>>() : Eigen::LLT<KMat<NJ, NJ>>(N);
+  const double inv_n = NJ == 1 ? 1.0 / N(0, 0) : 0.0;
+  const auto nsolve = [&](const auto& rhs) {
+    using Rhs = std::decay_t<decltype(rhs)>;
+    Rhs out(rhs.rows(), rhs.cols());
+    if constexpr (NJ == 1) out = inv_n * rhs;
+    else out = llt.solve(rhs);
+    return out;
+  };
   const KMat<6, NC> TG = T * G;
   // V = Sᵀ − K_st G Tᵀ (nJ × 6), N⁻¹V, and the pieces of R, Y, F.
   const KMat<NJ, 6> V = KMat<NJ, 6>(S.transpose()) - Kst * TG.transpose();
   KMat<NJ, 6> NiV(nJ, 6);
   KMat<NJ, NC> NiKstH(nJ, nc);
   if (nJ > 0) {
-    NiV = llt.solve(V);
-    NiKstH = llt.solve(KstH);
+    NiV = nsolve(V);
+    NiKstH = nsolve(KstH);
   }
   R.noalias() = TG * T.transpose();
   if (nJ > 0) R.noalias() += V.transpose() * NiV;
@@ -626,7 +666,7 @@ void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointM
   // Bias (no handle forces): g0, α0, λ0, f_J0 and L's acceleration at r_J.
   const KMat<NC, 1> g0 = T.transpose() * (bO + cp - Bh * (S * taup));
   KMat<NJ, 1> alpha0(nJ);
-  if (nJ > 0) alpha0 = llt.solve(KMat<NJ, 1>(V * p + taup - KstH * g0));
+  if (nJ > 0) alpha0 = nsolve(KMat<NJ, 1>(V * p + taup - KstH * g0));
   KMat<NC, 1> lam_rhs = Ktt * g0 - T.transpose() * p;
   if (nJ > 0) lam_rhs.noalias() += Kst.transpose() * alpha0;
   const KMat<NC, 1> lam0 = E * lam_rhs;
@@ -641,7 +681,7 @@ void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointM
   Gtau.setZero();
   if (nJ > 0) {
     const KMat<NC, NJ> Gg = -(T.transpose() * (Bh * S));
-    const KMat<NJ, NJ> A = llt.solve(KMat<NJ, NJ>(KMat<NJ, NJ>::Identity(nJ, nJ) - KstH * Gg));
+    const KMat<NJ, NJ> A = nsolve(KMat<NJ, NJ>(KMat<NJ, NJ>::Identity(nJ, nJ) - KstH * Gg));
     const KMat<NC, NJ> Lam = E * KMat<NC, NJ>(Ktt * Gg + Kst.transpose() * A);
     Gtau.leftCols(nJ) = T * Lam + S;
   }
