@@ -912,13 +912,7 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
       d.cluster_offset_lo[k].setZero();
       continue;
     }
-    const int p = m.parent[k];
-    const Vec3& a = d.cluster_offset[p];
-    const Vec3& b = d.d[k];
-    const Vec3 s = a + b;
-    const Vec3 bb = s - a;
-    d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + ((a - (s - bb)) + (b - bb));
-    d.cluster_offset[k] = s;
+    chain_cluster_offset(m, d, k);
   }
   for (auto it = ad.active_nodes.rbegin(); it != ad.active_nodes.rend(); ++it) {
     if (ad.inertia_form[*it]) dca_bottom_up_node(m, d, *it, st.tau);

@@ -555,6 +555,19 @@ inline void leaf_inertia_at_joint(const Data& d, int b, int J, Mat6& K, Vec6& p)
   }
 }
 
+// Slot c of node C -> (child, child slot): C's slots are P's without slot_j, then Q's without slot_k.
+inline void child_slot(const AssemblyTree& t, int node, int c, int& ch, int& s) {
+  const int hP = t.handle_num[t.P[node]];
+  if (c < hP - 1) {
+    ch = t.P[node];
+    s = c < t.slot_j[node] ? c : c + 1;
+  } else {
+    ch = t.Q[node];
+    const int l = c - (hP - 1);
+    s = l < t.slot_k[node] ? l : l + 1;
+  }
+}
+
 // 0: mobility form; 1: P is a light leaf; 2: Q is. The leaf form is used for a leaf body (not the
 // ground) that is the more mobile side of a joint with constraints (nc = 0: W = 0, nothing cancels).
 int leaf_form_side(const Model& m, const Data& d, int node) {
@@ -720,26 +733,15 @@ void leaf_form_assemble(const Model& m, Data& d, int node, int side, const Eigen
   d.leaf_side[node] = static_cast<std::uint8_t>(side);
 
   // Φ_C and b_C: C's slots are P' then Q'.
-  const int P = t.P[node], hP = t.handle_num[P];
-  auto child_of = [&](int c, int& ch, int& s) {
-    if (c < hP - 1) {
-      ch = P;
-      s = c < t.slot_j[node] ? c : c + 1;
-    } else {
-      ch = t.Q[node];
-      const int l = c - (hP - 1);
-      s = l < t.slot_k[node] ? l : l + 1;
-    }
-  };
   for (int c = 0; c < hC; ++c) {
     int ch, s;
-    child_of(c, ch, s);
+    child_slot(t, node, c, ch, s);
     const bool lc = ch == ls.L;
     const Vec3 ec = lc ? leaf_handle_offset(d, ls.b, J, t.handle(ls.L, s)) : Vec3::Zero();
     const Mat6 Xc = lc ? Mat6::Zero() : Mat6(d.Phi(ls.O, hO, s, ls.sO));
     for (int c2 = c; c2 < hC; ++c2) {
       int ch2, s2;
-      child_of(c2, ch2, s2);
+      child_slot(t, node, c2, ch2, s2);
       const bool lc2 = ch2 == ls.L;
       const Vec3 e2 = lc2 ? leaf_handle_offset(d, ls.b, J, t.handle(ls.L, s2)) : Vec3::Zero();
       Mat6 blk;
@@ -1185,6 +1187,17 @@ void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
   }
 }
 
+void chain_cluster_offset(const Model& m, Data& d, int k) noexcept {
+  // Knuth's two-sum: hi + lo = hi_p + lo_p + d_k with no rounding error kept in hi alone.
+  const int p = m.parent[k];
+  const Vec3& a = d.cluster_offset[p];
+  const Vec3& b = d.d[k];
+  const Vec3 s = a + b;
+  const Vec3 bb = s - a;
+  d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + ((a - (s - bb)) + (b - bb));
+  d.cluster_offset[k] = s;
+}
+
 namespace {
 
 void cluster_offsets(const Model& m, Data& d) {
@@ -1195,15 +1208,7 @@ void cluster_offsets(const Model& m, Data& d) {
         d.cluster_offset_lo[k].setZero();
         continue;
       }
-      // Knuth's two-sum: hi + lo = hi_p + lo_p + d_k with no rounding error kept in hi alone.
-      const int p = m.parent[k];
-      const Vec3& a = d.cluster_offset[p];
-      const Vec3& b = d.d[k];
-      const Vec3 s = a + b;
-      const Vec3 bb = s - a;
-      const Vec3 err = (a - (s - bb)) + (b - bb);
-      d.cluster_offset[k] = s;
-      d.cluster_offset_lo[k] = d.cluster_offset_lo[p] + err;
+      chain_cluster_offset(m, d, k);
     }
 }
 
@@ -1376,17 +1381,10 @@ void leaf_form_bias(const Model& m, Data& d, int node, const Eigen::VectorXd& ta
   }
   d.beta[node] = ls.sigma * fJ0;
   d.taut[node].setZero();
-  const int P = t.P[node], hP = t.handle_num[P], hC = t.handle_num[node];
+  const int hC = t.handle_num[node];
   for (int c = 0; c < hC; ++c) {
     int ch, sl;
-    if (c < hP - 1) {
-      ch = P;
-      sl = c < t.slot_j[node] ? c : c + 1;
-    } else {
-      ch = t.Q[node];
-      const int l = c - (hP - 1);
-      sl = l < t.slot_k[node] ? l : l + 1;
-    }
+    child_slot(t, node, c, ch, sl);
     if (ch == ls.L)
       d.b(node, c) = shift_motion(aL0, leaf_handle_offset(d, ls.b, J, t.handle(ls.L, sl)));
     else

@@ -32,6 +32,9 @@ void dca_bottom_up(const Model& model, Data& data, const State& state) noexcept;
 // incremental metric, issue 13.1): the cluster offsets (once per pass, before any node), and one
 // node as dca_bottom_up assembles it (leaf, inertia-form cluster node, or ordinary node).
 void dca_cluster_offsets(const Model& model, Data& data) noexcept;
+// One body's step of it: data.cluster_offset[k] (+ _lo) = its parent's + d_k, compensated
+// (two-sum), for a body k that is not its cluster's root (also adaptive.cpp's hybrid pass).
+void chain_cluster_offset(const Model& model, Data& data, int k) noexcept;
 void dca_bottom_up_node(const Model& model, Data& data, int node, const Eigen::VectorXd& tau) noexcept;
 void dca_top_down(const Model& model, Data& data) noexcept;
 
