@@ -181,7 +181,6 @@ std::mutex& delivery_mutex() {
   static std::mutex m;
   return m;
 }
-std::mutex& Bus::subscribe_mutex() { return delivery_mutex(); }
 
 void set_delivery(Bus& bus, RawSubscription& sub, bool on) {
   std::lock_guard<std::mutex> lock(delivery_mutex());

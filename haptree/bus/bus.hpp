@@ -184,6 +184,10 @@ class RawSubscription final : public SubscriptionBase {
   Callback cb_;
 };
 
+// Serialises every change of lcm::LCM's list of subscriptions (subscribe, subscribe_raw,
+// set_delivery in delivery.hpp): that list is not thread-safe.
+std::mutex& delivery_mutex();
+
 class Bus {
  public:
   // url: any LCM URL. "memq://" keeps everything in this process (all components must share this Bus);
@@ -228,7 +232,7 @@ class Bus {
     {
       // lcm::LCM's own list of subscriptions is unguarded: two threads subscribing at once (a
       // component constructed while another starts) would race on it.
-      std::lock_guard<std::mutex> lock(subscribe_mutex());
+      std::lock_guard<std::mutex> lock(delivery_mutex());
       raw->lcm_subscription = lcm_->subscribe(channel, &Subscription<T>::on_raw, raw);
     }
     add(std::move(sub));
@@ -240,7 +244,6 @@ class Bus {
     return subscribe<T>(channel, [&box](const T& m, const std::string&) { box.write(m); });
   }
   RawSubscription& subscribe_raw(const std::string& channel, RawSubscription::Callback cb);
-  static std::mutex& subscribe_mutex();   // = delivery_mutex() (delivery.hpp)
 
   // Handles at most one message, waiting up to timeout_ms. >0 handled, 0 timeout, <0 error.
   int handle_timeout(int timeout_ms) noexcept;

@@ -11,9 +11,8 @@ namespace haptree::bus {
 // Stops (on = false) or resumes sub's delivery: an LCM unsubscribe / subscribe; the Subscription and its
 // counters stay. Any thread except a handler's; resuming allocates. A dispatch already under way on the
 // handler thread may still deliver one message after a stop (LCM's C library frees the handler only
-// when that dispatch returns; the Subscription outlives it). Serialised with Bus::subscribe_raw by delivery_mutex() (lcm::LCM's list of
-// subscriptions is not thread-safe); typed subscriptions are made before the bus runs.
+// when that dispatch returns; the Subscription outlives it). Serialised with Bus::subscribe and
+// subscribe_raw by delivery_mutex() (bus.hpp).
 void set_delivery(Bus& bus, RawSubscription& sub, bool on);
-std::mutex& delivery_mutex();
 
 }  // namespace haptree::bus
