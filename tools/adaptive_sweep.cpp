@@ -114,10 +114,11 @@ double total_energy(const Scene& sc, const State& st) {
   return e;
 }
 
-Result run_full(const Scene& sc, const State& init, int warmup) {
+Result run_full(const Scene& sc, const State& init, int warmup, Refinement refine) {
   const Model& m = *sc.model;
   State st = init;
   Data d(m);
+  set_refinement(m, d, refine);
   Result r;
   for (int s = 0; s < sc.steps; ++s) {
     const double w0 = wall_us(), c0 = cpu_us();
@@ -225,6 +226,7 @@ struct Config {
   unsigned seed = 1;
   int chain_n = 4096;
   bool fresh_poses = false;
+  Refinement full_refine = Refinement::kDouble;   // the full-DCA reference's Data::refine
 };
 
 Scene make_robot_scene(const std::string& name, const Config& c) {
@@ -341,6 +343,12 @@ int main(int argc, char** argv) {
   app.add_option("--reselect-every", c.reselect_every,
                  "steps between active-region selections (0 = the library default: error-controlled)")
       ->capture_default_str();
+  std::string full_refine = "double";
+  app.add_option("--full-refine", full_refine,
+                 "refinement of the full-DCA reference (Data::refine): double (the library default), "
+                 "off (one pass, 1.2-1.3x faster: the stricter speed-up), extended")
+      ->check(CLI::IsMember({"off", "double", "extended"}))
+      ->capture_default_str();
   app.add_flag("--exact-metric", c.exact_metric,
                "every selection assembles every node in full (AdaptiveOptions::incremental_metric = "
                "false; the default reuses the cached Φ, W, Ψ of nodes with no moved joint)");
@@ -353,6 +361,7 @@ int main(int argc, char** argv) {
                "small fast run (chain256 + protein_like, 20 steps, k = 8,48,all, one eps) that "
                "fails on non-finite states or a budget overrun");
   CLI11_PARSE(app, argc, argv);
+  c.full_refine = full_refine == "off" ? Refinement::kOff : full_refine == "extended" ? Refinement::kExtended : Refinement::kDouble;
   if (smoke) {
     scenes = "chain256,protein_like";
     budgets = "8,48,all";
@@ -401,10 +410,10 @@ int main(int argc, char** argv) {
       for (int i = 0; i < m.nv; ++i)
         init.qd[i] = c.init_qd_rad_s * (2.0 * std::rand() / RAND_MAX - 1.0);
     }
-    std::fprintf(stderr, "[%s] %d DOF, %d steps of %g %s: full DCA reference...\n", name.c_str(),
-                 m.nv, sc.steps, sc.dt, sc.time_unit.c_str());
+    std::fprintf(stderr, "[%s] %d DOF, %d steps of %g %s: full DCA reference (refinement %s)...\n",
+                 name.c_str(), m.nv, sc.steps, sc.dt, sc.time_unit.c_str(), full_refine.c_str());
     const double E0 = total_energy(sc, init);
-    const Result full = run_full(sc, init, c.warmup);
+    const Result full = run_full(sc, init, c.warmup, c.full_refine);
     const double full_med = median(full.cpu), full_mean = mean(full.cpu);
     const double full_loads = median(full.ff_cpu);
     // Total metric of the initial state (with the initial loads) for the relative thresholds.
