@@ -170,7 +170,9 @@ TEST_P(DcaRefine, RefinedMatchesOracle) {
   EXPECT_EQ(d.b_buf, kept.b_buf);
   EXPECT_EQ(d.f_buf, kept.f_buf);
   auto same6 = [](const std::vector<Vec6>& a, const std::vector<Vec6>& b) {
-    return a.size() == b.size() && std::memcmp(a.data(), b.data(), sizeof(Vec6) * a.size()) == 0;
+    // (memcmp of an empty vector's null data() is undefined: UBSan's nonnull check)
+    return a.size() == b.size() &&
+           (a.empty() || std::memcmp(a.data(), b.data(), sizeof(Vec6) * a.size()) == 0);
   };
   EXPECT_TRUE(same6(d.beta, kept.beta) && same6(d.taut, kept.taut) && same6(d.p_bias, kept.p_bias) &&
               same6(d.c, kept.c) && same6(d.cb, kept.cb) && same6(d.ca, kept.ca) &&
