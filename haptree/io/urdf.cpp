@@ -1,5 +1,6 @@
 #include "haptree/io/urdf.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <map>
@@ -56,9 +57,44 @@ class CaptureHandler : public console_bridge::OutputHandler {
 
 struct ScopedCapture {
   CaptureHandler handler;
-  ScopedCapture() { console_bridge::useOutputHandler(&handler); }
+  // quiet: no handler at all, so console_bridge formats no message (see parse_with_urdfdom).
+  explicit ScopedCapture(bool quiet) {
+    if (quiet)
+      console_bridge::noOutputHandler();
+    else
+      console_bridge::useOutputHandler(&handler);
+  }
   ~ScopedCapture() { console_bridge::restorePreviousOutputHandler(); }
 };
+
+// urdfdom's parseURDF; on failure `err` is its first error message (or the exception's text).
+urdf::ModelInterfaceSharedPtr urdfdom_parse(const std::string& xml, bool quiet, std::string& err) {
+  ScopedCapture capture(quiet);
+  urdf::ModelInterfaceSharedPtr urdf;
+  try {
+    urdf = urdf::parseURDF(xml);
+  } catch (const std::exception& e) {
+    err = e.what();
+  }
+  if (err.empty()) err = capture.handler.first_error;
+  return urdf;
+}
+
+// urdfdom 3.0 passes some of the file's own text to printf as the format (a material's name, the
+// text of a malformed vector: link.cpp, pose.cpp), so a '%' there is read as a conversion and a
+// "%s" crashes the parse (found by fuzz_urdf). A text with a '%' is parsed with no output handler,
+// so nothing is formatted; only if that parse fails is a copy with each '%' as '?' parsed, with
+// messages, to say why (the copy fails the same way: '%' is in no URDF keyword or number).
+urdf::ModelInterfaceSharedPtr parse_with_urdfdom(const std::string& xml, std::string& err) {
+  if (xml.find('%') == std::string::npos) return urdfdom_parse(xml, false, err);
+  std::string ignored;
+  if (auto urdf = urdfdom_parse(xml, true, ignored)) return urdf;
+  std::string safe = xml;
+  std::replace(safe.begin(), safe.end(), '%', '?');
+  urdfdom_parse(safe, false, err);
+  if (!err.empty()) err += " (each '%' of the file shown as '?')";
+  return nullptr;
+}
 
 std::string one_line(std::string s) {
   for (char& c : s)
@@ -326,17 +362,8 @@ std::shared_ptr<const Model> parse_urdf(const std::string& xml, const std::strin
                       one_line(doc.ErrorDesc()));
     check_joint_tree(doc, source);
   }
-  urdf::ModelInterfaceSharedPtr urdf;
   std::string err;
-  {
-    ScopedCapture capture;
-    try {
-      urdf = urdf::parseURDF(xml);
-    } catch (const std::exception& e) {
-      err = e.what();
-    }
-    if (err.empty()) err = capture.handler.first_error;
-  }
+  const urdf::ModelInterfaceSharedPtr urdf = parse_with_urdfdom(xml, err);
   if (!urdf)
     throw UrdfError(source + ": URDF parse error: " + one_line(err.empty() ? "unknown" : err));
   // A link with two parents closes a loop; haptree simulates trees only (and urdfdom would hand the

@@ -331,3 +331,35 @@ TEST(UrdfInput, TextThatIsNotUtf8IsRefusedBeforeTinyXmlReadsIt) {
   EXPECT_NE(msg(std::string("<robot name='r'>\xED\xA0\x80</robot>")).find("not UTF-8"), std::string::npos);   // surrogate
   EXPECT_NE(msg(std::string("<robot>\xF4\x90\x80\x80</robot>")).find("not UTF-8"), std::string::npos);   // > U+10FFFF
 }
+
+// urdfdom 3.0 hands a material's name and a malformed vector's text to printf as the format: "%s" in
+// either crashed the parse (fuzz smoke run, SEGV in vfprintf). A '%' is now plain text: a good file
+// with one loads, and a bad one is refused with urdfdom's reason, its '%' shown as '?'.
+TEST(UrdfInput, PercentInTheFileIsNeverAPrintfFormat) {
+  const std::string conversions(40, '%');   // "%%..." is harmless; "%s%n..." is what crashed
+  std::string specs;
+  for (int i = 0; i < 20; ++i) specs += "%s%n";
+  const std::string body = "<link name='a'><inertial><mass value='1'/><inertia ixx='1' ixy='0' ixz='0' iyy='1' "
+                           "iyz='0' izz='1'/></inertial><visual><geometry><box size='1 1 1'/></geometry>"
+                           "<material name='" + specs + "'/></visual></link>"
+                           "<link name='b'><inertial><mass value='2'/><inertia ixx='1' ixy='0' ixz='0' iyy='1' "
+                           "iyz='0' izz='1'/></inertial></link>";
+  auto urdf = [&](const std::string& xyz) {
+    return "<robot name='r" + conversions + "'><material name='" + specs + "'><color rgba='1 0 0 1'/></material>" +
+           body + "<joint name='j' type='continuous'><parent link='a'/><child link='b'/><origin xyz='" + xyz +
+           "'/><axis xyz='0 0 1'/></joint></robot>";
+  };
+  const auto m = haptree::io::parse_urdf(urdf("0 0 1"), "t.urdf");
+  ASSERT_NE(m, nullptr);
+  EXPECT_EQ(m->nbodies, 3);   // the world and the two links
+  EXPECT_EQ(m->nv, 1);
+  try {
+    haptree::io::parse_urdf(urdf(specs + " 0 0"), "t.urdf");
+    ADD_FAILURE() << "a malformed origin was accepted";
+  } catch (const haptree::io::UrdfError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("t.urdf: URDF parse error"), std::string::npos) << what;
+    EXPECT_NE(what.find("?s?n?s?n"), std::string::npos) << what;   // urdfdom's text, the value in it
+    EXPECT_NE(what.find("each '%' of the file shown as '?'"), std::string::npos) << what;
+  }
+}
