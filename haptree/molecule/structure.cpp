@@ -98,7 +98,11 @@ void scan_pdb_text(const std::string& path, std::unordered_map<int, int>& serial
     if (line.find('\0') != std::string::npos)
       throw StructureError(path + ":" + std::to_string(ln) + ": NUL byte at column " +
                            std::to_string(line.find('\0') + 1) + " (a PDB file is text)");
-    padded += line;
+    // gemmi reads 120 columns of a line and skips the rest with a loop that stops early at a byte >= 0x80
+    // (it reads bytes as signed char): the rest would become a record of its own, unpadded (a short LINK
+    // was read past its end under ASan) or even an extra atom. The columns past 120 are cut here instead.
+    constexpr size_t kGemmiColumns = 120;
+    padded.append(line, 0, std::min(line.size(), kGemmiColumns));
     if (line.size() < 80) padded.append(80 - line.size(), ' ');
     padded += '\n';
     const std::string rec = line.substr(0, 6);
