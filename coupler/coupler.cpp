@@ -36,7 +36,7 @@ double user_force_limit(const CouplerOptions& o) noexcept { return kUserForceMar
 void check_coupler_options(const CouplerOptions& o) {
   auto fail = [](const std::string& what) { throw std::invalid_argument("coupler: " + what); };
   auto pos = [](double v) { return std::isfinite(v) && v > 0; };
-  if (!pos(o.rate_hz)) fail("--rate-hz must be a positive rate, got " + std::to_string(o.rate_hz));
+  if (!pos(o.rate_hz)) fail("--coupler-rate-hz must be a positive rate, got " + std::to_string(o.rate_hz));
   if (!pos(o.stiffness)) fail("--stiffness must be positive and finite");
   if (!(std::isfinite(o.damping) && o.damping >= 0)) fail("--damping must be >= 0 and finite");
   if (!pos(o.position_scale)) fail("--position-scale must be positive and finite");
@@ -509,6 +509,7 @@ void Coupler::publish_stats(double period_s, int64_t iterations) {
   c_.p50_us = hist_.percentile(0.5);
   c_.p99_us = hist_.percentile(0.99);
   c_.snapshot_age_ms = age_ms;
+  c_.grab_body = grabbing_ ? body_ : 0;
   lcmt_process_stats s{};
   bus::stamp(s, instance_id_);
   s.seq = ++stats_seq_;
@@ -590,7 +591,7 @@ int Coupler::run(const std::atomic<bool>& stop) {
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up
     if (opt_.busy_wait) {
       // --busy-poll: a new device pose ends the wait; that iteration takes the place of the next tick, so
-      // the rate stays --rate-hz and the pose waits for no tick (pose-to-force latency, issue 15.1).
+      // the rate stays --coupler-rate-hz and the pose waits for no tick (pose-to-force latency, issue 15.1).
       while (since(kEpoch) < next && !stop.load(std::memory_order_relaxed) && !(opt_.busy_poll && new_pose_waiting())) {
       }
     } else {

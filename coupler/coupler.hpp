@@ -53,6 +53,7 @@ struct CouplerCounters {
       bad_rejected{0}, feedback_published{0};
   std::atomic<double> rate_hz{0}, p50_us{0}, p99_us{0}, snapshot_age_ms{-1}, force_n{0};
   std::atomic<int64_t> version_in_use{-1};
+  std::atomic<int> grab_body{0};                  // body held at the last stats window; 0: none
   std::atomic<int64_t> restarts{0};               // a new server instance after the old stream went silent
   std::atomic<int64_t> duplicate_rejected{0};     // snapshots of a second live server instance
   std::atomic<int64_t> implausible_rejected{0};   // version jumps beyond what the elapsed time allows

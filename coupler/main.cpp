@@ -9,26 +9,28 @@
 #include "coupler/coupler.hpp"
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
+#include "haptree/bus/session_config.hpp"
 #include "haptree/device/device_cli.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
+  haptree::bus::ProgramCli cli(app, "coupler", {{"--rate-hz", "--coupler-rate-hz"}}, "user");
   haptree::CouplerOptions o;
   haptree::bus::BusOptions b;
   haptree::bus::add_bus_options(app, b, /*shm_link=*/true, /*mirror=*/false);   // the device_bridge mirrors
   std::vector<double> offset{0, 0, 0};
-  app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>)")
+  app.add_option("--user", o.user, "user id (HAPTREE_COEFFS_<user>, HAPTREE_USER_FORCE_<user>; picks the session file's [user.N])")
       ->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>)")
-      ->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--rate-hz", o.rate_hz, "coupling loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
-  app.add_flag("!--sleep", o.busy_wait, "pace with sleep_until instead of busy waiting");
-  app.add_option("--stiffness", o.stiffness, "k_s, scene force per scene length")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--damping", o.damping, "b_s, scene force per scene velocity")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
-  app.add_option("--position-scale", o.position_scale, "scene length units per device metre")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--force-scale", o.force_scale, "newtons per scene force unit")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--offset", offset, "scene position of the device origin (3 values)")->expected(3)->check(haptree::bus::finite_in(-1e12, 1e12));
-  app.add_option("--grab-body", o.grab_body, "body to grab (-1: nearest to the device point)")
+  app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>); default: the user id")
+      ->check(CLI::Range(0, 1000000));
+  app.add_option("--coupler-rate-hz", o.rate_hz, "coupling loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_flag("!--sleep", o.busy_wait, "pace with sleep_until instead of busy waiting (frees the CPU, costs jitter)");
+  app.add_option("--stiffness", o.stiffness, "coupling stiffness k_s, scene force per scene length (N/m for SI scenes; kJ/(mol nm^2) for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--damping", o.damping, "coupling damping b_s, scene force per scene velocity (N s/m for SI scenes; kJ ps/(mol nm^2) for molecules)")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
+  app.add_option("--position-scale", o.position_scale, "scene length units per device metre (m/m for SI scenes; nm/m for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--force-scale", o.force_scale, "N at the device per scene force unit (N/N for SI scenes; N per kJ/(mol nm) for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--offset", offset, "X,Y,Z scene position of the device origin, scene length units")->delimiter(',')->expected(3)->check(haptree::bus::finite_in(-1e12, 1e12));
+  app.add_option("--grab-body", o.grab_body, "body index to grab (-1: the nearest to the device point)")
       ->check(CLI::Range(-1, 1 << 30))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "force clamp at the device, N (the user force sent to the server is clamped to 2 x this / --force-scale)")
       ->check(haptree::bus::positive(1000))->capture_default_str();
@@ -37,12 +39,12 @@ int main(int argc, char** argv) {
       ->check(haptree::bus::positive(10))->capture_default_str();
   app.add_option("--user-force-rate-hz", o.user_force_rate_hz, "USER_FORCE publication rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-device-position-m", o.max_device_position_m,
-                 "a device position farther than this from the device origin (or non-finite) is a glitch: refused "
+                 "device position glitch limit, m: a device position farther than this from the device origin (or non-finite) is a glitch: refused "
                  "and counted; the watchdog zeroes the force")
       ->check(haptree::bus::positive(1e3))->capture_default_str();
   std::string fingerprint;
   app.add_option("--model-fingerprint", fingerprint,
-                 "expected model fingerprint (16 hex digits, as sim_server logs it); snapshots of any other model "
+                 "expected model fingerprint (up to 16 hex digits, as sim_server logs it); snapshots of any other model "
                  "are refused. Default: lock onto the first model heard")
       ->check(CLI::Validator(
           [](std::string& in) -> std::string {
@@ -57,8 +59,11 @@ int main(int argc, char** argv) {
   haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
   haptree::bus::add_realtime_options(app, rt,
                                      "with busy-wait pacing, iterate as soon as a new device pose arrives instead of "
-                                     "at the next tick (pose-to-force latency; the rate stays --rate-hz)");
-  CLI11_PARSE(app, argc, argv);
+                                     "at the next tick (pose-to-force latency; the rate stays --coupler-rate-hz)");
+  const int rc = cli.parse(argc, argv, [&] {   // a user's own device unless told otherwise
+    haptree::bus::set_default(app, "--device", o.device, o.user);
+  });
+  if (rc >= 0) return rc;
   if (rt.busy_poll && !o.busy_wait) {
     spdlog::critical("--busy-poll needs busy-wait pacing: drop --sleep");
     return 2;

@@ -9,17 +9,21 @@
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
+#include "haptree/bus/session_config.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
+  haptree::bus::ProgramCli cli(app, "device_bridge",
+                               {{"--rate-hz", "--device-rate-hz"}, {"--kind", "--device-kind"}, {"--option", "--device-option"}},
+                               "device");
   haptree::DeviceBridgeOptions o;
   haptree::bus::BusOptions b;
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
-  app.add_option("--device", o.device, "device id")->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press)")->capture_default_str();
-  app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
-  app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>; picks the session file's [user.N])")->check(CLI::Range(0, 1000000))->capture_default_str();
+  app.add_option("--device-kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --device-option fallback=scripted keeps the script until the page's first press)")->capture_default_str();
+  app.add_option("--device-option", kv, "device option key=value, repeated (e.g. pull_distance_m=0.03, log=FILE)");
+  app.add_option("--device-rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
   haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
   haptree::bus::add_realtime_options(app, rt,
@@ -29,12 +33,12 @@ int main(int argc, char** argv) {
                  "bound on any change of the rendered force, N/s (a jerk guard at the hand); 0: the clamp within "
                  "5 ms, 600 N/s for 3 N. FEEDBACK older than 10 ms ramps to zero in 5 ms, and back in over 0.1 s")
       ->check(CLI::Range(0.0, 1e6))->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (const int rc = cli.parse(argc, argv); rc >= 0) return rc;
   o.busy_poll = rt.busy_poll;
   for (const auto& s : kv) {
     const auto eq = s.find('=');
     if (eq == std::string::npos) {
-      spdlog::critical("--option '{}': expected key=value", s);
+      spdlog::critical("--device-option '{}': expected key=value", s);
       return 2;
     }
     o.options[s.substr(0, eq)] = s.substr(eq + 1);

@@ -19,7 +19,7 @@ filter=${4:-.}
 source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "$csv" "$filter"
 command -v stress-ng >/dev/null || { echo "stress-ng not installed (apt-get install stress-ng)" >&2; exit 2; }
 
-# name | coupler options | device_bridge options   (coupler --rate-hz: 20 kHz on shm, 10 kHz on udpm, unless set)
+# name | coupler options | device_bridge options   (coupler --coupler-rate-hz: 20 kHz on shm, 10 kHz on udpm, unless set)
 shm_sets=(
   "busywait|--shm|--shm --busy-poll"
   "sleep|--shm --sleep|--shm --busy-poll"
@@ -29,7 +29,7 @@ shm_sets=(
   "fifo-busypoll-pin|--shm --busy-poll --sched-fifo 80 --cpu-affinity 1|--shm --busy-poll --sched-fifo 81 --cpu-affinity 0"
   "fifo-busypoll-pin-mlock|--shm --busy-poll --sched-fifo 80 --cpu-affinity 1 --mlockall|--shm --busy-poll --sched-fifo 81 --cpu-affinity 0 --mlockall"
   "fifo-sleep-pin-mlock|--shm --sleep --sched-fifo 80 --cpu-affinity 1 --mlockall|--shm --busy-poll --sched-fifo 81 --cpu-affinity 0 --mlockall"
-  "fifo-sleep40k-pin-mlock|--shm --sleep --rate-hz 40000 --sched-fifo 80 --cpu-affinity 1 --mlockall|--shm --busy-poll --sched-fifo 81 --cpu-affinity 0 --mlockall"
+  "fifo-sleep40k-pin-mlock|--shm --sleep --coupler-rate-hz 40000 --sched-fifo 80 --cpu-affinity 1 --mlockall|--shm --busy-poll --sched-fifo 81 --cpu-affinity 0 --mlockall"
 )
 udpm_sets=(
   "busywait||"
@@ -54,13 +54,13 @@ run() {   # link load name copts dopts rate
     stress=$!
     sleep 0.5
   fi
-  [[ "$copts" == *--rate-hz* ]] && rate=$(sed -E 's/.*--rate-hz ([0-9]+).*/\1/' <<<"$copts") && copts=${copts/--rate-hz $rate/}
+  [[ "$copts" == *--coupler-rate-hz* ]] && rate=$(sed -E 's/.*--coupler-rate-hz ([0-9]+).*/\1/' <<<"$copts") && copts=${copts/--coupler-rate-hz $rate/}
   # shellcheck disable=SC2086
-  "$build/coupler/coupler" --lcm-url "$url" --rate-hz "$rate" $copts >"$dir/coupler.log" 2>&1 &
+  "$build/coupler/coupler" --lcm-url "$url" --coupler-rate-hz "$rate" $copts >"$dir/coupler.log" 2>&1 &
   cpl=$!
   sleep 0.3
   # shellcheck disable=SC2086
-  timeout -s INT "$duration" "$build/device_bridge/device_bridge" --lcm-url "$url" --rate-hz 1000 $dopts \
+  timeout -s INT "$duration" "$build/device_bridge/device_bridge" --lcm-url "$url" --device-rate-hz 1000 $dopts \
     >"$dir/device.log" 2>&1 || true
   load1=$(cut -d' ' -f1 /proc/loadavg)
   kill -INT "$cpl"; wait "$cpl" || true

@@ -30,12 +30,12 @@ printf "%-14s %6s %11s %17s %10s %9s %14s %6s\n" stale_after_s trips trips_per_s
   uf_gap_max_ms load1
 for s in "${values[@]}"; do
   dir=$(mktemp -d /tmp/stale_after.XXXXXX)
-  "$build/sim_server/sim_server" --lcm-url "$url" --scene protein_like --n 64 --rate-hz 1000 >"$dir/sim.log" 2>&1 &
+  "$build/sim_server/sim_server" --lcm-url "$url" --scene protein_like --n 64 --sim-rate-hz 1000 >"$dir/sim.log" 2>&1 &
   sim=$!
   "$build/coupler/coupler" --lcm-url "$url" --grab-body "$body" --offset "$ox" "$oy" "$oz" --shm \
     --stale-after-s "$s" >"$dir/coupler.log" 2>&1 &
   cpl=$!
-  "$build/device_bridge/device_bridge" --lcm-url "$url" --kind scripted --shm --option hold_s=600 \
+  "$build/device_bridge/device_bridge" --lcm-url "$url" --device-kind scripted --shm --device-option hold_s=600 \
     >"$dir/device.log" 2>&1 &
   dev=$!
   sleep "$duration"

@@ -14,11 +14,11 @@ dopts=${4:-}
 source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "$copts" "$dopts"
 dir=$(mktemp -d /tmp/threadcost.XXXXXX)
 # shellcheck disable=SC2086
-"$build/coupler/coupler" --lcm-url "$url" --rate-hz 10000 $copts >"$dir/coupler.log" 2>&1 &
+"$build/coupler/coupler" --lcm-url "$url" --coupler-rate-hz 10000 $copts >"$dir/coupler.log" 2>&1 &
 cpl=$!
 sleep 0.3
 # shellcheck disable=SC2086
-timeout -s INT "$duration" "$build/device_bridge/device_bridge" --lcm-url "$url" --rate-hz 1000 $dopts \
+timeout -s INT "$duration" "$build/device_bridge/device_bridge" --lcm-url "$url" --device-rate-hz 1000 $dopts \
   >"$dir/device.log" 2>&1 &
 dev=$!
 sleep $((duration - 1))

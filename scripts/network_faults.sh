@@ -88,13 +88,13 @@ start_session() {
   local name=$1 ua=$2 ub=$3
   ip netns exec "$B" lcm-logger -f --lcm-url="$ub" "$tmp/$name.lcmlog" >"$tmp/$name.logger.log" 2>&1 &
   pids+=($!)
-  ip netns exec "$A" "$build/sim_server/sim_server" --lcm-url "$ua" --scene chain --n 32 --gravity 0,0,0 --rate-hz 1000 \
+  ip netns exec "$A" "$build/sim_server/sim_server" --lcm-url "$ua" --scene chain --n 32 --gravity 0,0,0 --sim-rate-hz 1000 \
     >"$tmp/$name.sim.log" 2>&1 &
   pids+=($!)
-  ip netns exec "$B" "$build/coupler/coupler" --lcm-url "$ub" --rate-hz 5000 --sleep --max-force-n "$clamp" \
+  ip netns exec "$B" "$build/coupler/coupler" --lcm-url "$ub" --coupler-rate-hz 5000 --sleep --max-force-n "$clamp" \
     >"$tmp/$name.coupler.log" 2>&1 &
   pids+=($!)
-  ip netns exec "$B" "$build/device_bridge/device_bridge" --lcm-url "$ub" --option hold_s=600 --option pull_distance_m=0.06 --max-force-n "$clamp" \
+  ip netns exec "$B" "$build/device_bridge/device_bridge" --lcm-url "$ub" --device-option hold_s=600 --device-option pull_distance_m=0.06 --max-force-n "$clamp" \
     >"$tmp/$name.device.log" 2>&1 &
   pids+=($!)
 }

@@ -69,7 +69,7 @@ static void check_options(const SimServerOptions& o) {
   auto fail = [](const std::string& what) { throw std::invalid_argument("sim_server: " + what); };
   auto pos = [](double v) { return std::isfinite(v) && v > 0; };
   if (!pos(o.dt)) fail("--dt must be a positive finite time step, got " + std::to_string(o.dt));
-  if (!(std::isfinite(o.rate_hz) && o.rate_hz >= 0)) fail("--rate-hz must be >= 0 (0 = free-running)");
+  if (!(std::isfinite(o.rate_hz) && o.rate_hz >= 0)) fail("--sim-rate-hz must be >= 0 (0 = free-running)");
   if (!(std::isfinite(o.display_rate_hz) && o.display_rate_hz >= 0)) fail("--display-rate-hz must be >= 0");
   if (o.users < 1) fail("--users must be at least 1, got " + std::to_string(o.users));
   if (o.n < 1) fail("--n must be at least 1, got " + std::to_string(o.n));
@@ -411,10 +411,10 @@ void SimServer::check_rate(double steps_per_s, double mean_step_ms, double max_s
   if (slow_windows_ < 2) return;
   warned_rate_ = true;
   const bool molecule = molecule_ != nullptr;
-  spdlog::warn("sim_server: cannot keep the requested --rate-hz {:.0f}: {:.0f} steps/s in the last second ({:.0f} % "
+  spdlog::warn("sim_server: cannot keep the requested --sim-rate-hz {:.0f}: {:.0f} steps/s in the last second ({:.0f} % "
                "of it); steps took {:.2f} ms on average and up to {:.1f} ms, so simulated time runs at {:.3g} {} "
                "instead of {:.3g}. The haptic loop is unaffected, but the body responds more slowly. Lower "
-               "--budget-dofs, use a smaller model, or ask for a lower --rate-hz. (Said once.)",
+               "--budget-dofs, use a smaller model, or ask for a lower --sim-rate-hz. (Said once.)",
                opt_.rate_hz, steps_per_s, 100 * last_rate_fraction_, mean_step_ms, max_step_ms,
                last_real_time_factor_, molecule ? "ps of simulated time per second" : "x real time",
                opt_.rate_hz * opt_.dt);
@@ -440,7 +440,7 @@ void SimServer::publish_stats(double rate_hz) {
   double gap = 0;
   for (auto& u : users_) gap = std::max(gap, u->max_gap_s), u->max_gap_s = 0;
   // real_time_factor: simulated time per wall-clock second (s/s; ps/s for molecules); rate_fraction: steps/s
-  // over the requested --rate-hz (0 if free-running); max_step_ms: the longest step of the last second.
+  // over the requested --sim-rate-hz (0 if free-running); max_step_ms: the longest step of the last second.
   s.n_extra = 7;
   s.extra_names = {"active_dofs", "snapshot_bytes", "resets", "user_force_gap_max_ms", "real_time_factor",
                    "rate_fraction", "max_step_ms"};

@@ -272,14 +272,14 @@ int main(int argc, char** argv) {
   };
   std::vector<Role> roles(3);
   roles[0].name = "sim_server";
-  roles[0].args = with_common({exe_sim, "--scene", "protein_like", "--n", std::to_string(n), "--rate-hz", "1000"});
+  roles[0].args = with_common({exe_sim, "--scene", "protein_like", "--n", std::to_string(n), "--sim-rate-hz", "1000"});
   roles[1].name = "coupler";
-  roles[1].args = with_common({exe_cpl, "--grab-body", std::to_string(body), "--rate-hz", "5000", "--sleep",
+  roles[1].args = with_common({exe_cpl, "--grab-body", std::to_string(body), "--coupler-rate-hz", "5000", "--sleep",
                                "--stale-after-s", num(stale_after_s), "--max-force-n", num(max_force_n), "--shm",
                                "--model-fingerprint", fp, "--offset", num(offset.x()), num(offset.y()), num(offset.z())});
   roles[2].name = "device_bridge";
-  roles[2].args = with_common({exe_dev, "--shm", "--max-force-n", num(max_force_n), "--option", "approach_s=0.2",
-                               "--option", "hold_s=1e6"});
+  roles[2].args = with_common({exe_dev, "--shm", "--max-force-n", num(max_force_n), "--device-option", "approach_s=0.2",
+                               "--device-option", "hold_s=1e6"});
 
   const auto t0 = Clock::now();
   auto now_s = [&t0] { return std::chrono::duration<double>(Clock::now() - t0).count(); };

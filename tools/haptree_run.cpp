@@ -5,6 +5,7 @@
 // (tools/haptree_run_processes.cpp): device link over shared memory, the rest over a loopback-only LCM
 // tcpq hub run by the launcher (or udpm, only inside a private network namespace).
 #include <CLI/CLI.hpp>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -22,11 +23,14 @@
 #include "device_bridge/device_bridge.hpp"
 #include "haptree/bus/bus.hpp"
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/session_config.hpp"
 #include "haptree/dca.hpp"
 #include "imd_bridge/imd_server.hpp"
 #include "haptree/device/device_cli.hpp"
+#include "haptree/device/registry.hpp"
 #include "sim_server/sim_server.hpp"
 #include "tools/haptree_run_processes.hpp"
+#include "tools/haptree_status.hpp"
 #include "viewer/viewer.hpp"
 
 namespace {
@@ -40,7 +44,7 @@ struct ViewerLaunch {
   int users = 2;                // tabs that can pull at once (couplers are started for them)
 };
 std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const haptree::SimServerOptions& so,
-                                              const ViewerLaunch& vl, int users) {
+                                              const ViewerLaunch& vl, int users, FILE* out) {
   if (vl.port <= 0) return nullptr;
   haptree::ViewerOptions vo;
   vo.bind = vl.bind;
@@ -50,8 +54,8 @@ std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const hapt
   vo.urdf = so.urdf;
   vo.users = users;
   auto v = std::make_unique<haptree::Viewer>(bus, vo);
-  std::printf("viewer: open %s\n", v->url().c_str());
-  std::fflush(stdout);
+  std::fprintf(out, "viewer: open %s\n", v->url().c_str());
+  std::fflush(out);
   return v;
 }
 }  // namespace
@@ -62,6 +66,7 @@ int main(int argc, char** argv) {
                "processes on this host (device link over shared memory, the rest over a 127.0.0.1-only LCM\n"
                "tcpq hub run by haptree_run; nothing leaves the machine); Ctrl-C/SIGTERM stop and reap them,\n"
                "exit code 1 with the child's log tail if any child fails"};
+  haptree::bus::ProgramCli cli(app, "haptree_run");
   haptree::SimServerOptions so;
   so.scene = "protein_like";
   so.n = 64;
@@ -75,39 +80,52 @@ int main(int argc, char** argv) {
   double stale_after_s = haptree::CouplerOptions{}.stale_after_s;
   std::string lcm_url = "memq://";
   app.add_option("--scene", so.scene, "chain|binary_tree|random_tree|star|protein_like, molecule name or PDB")->capture_default_str();
-  app.add_option("--n", so.n, "bodies of a procedural scene")->check(CLI::Range(1, 1 << 20))->capture_default_str();
+  app.add_option("--n", so.n, "bodies of a procedural scene (count)")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
-  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->check(CLI::Range(1, 1 << 24))->capture_default_str();
-  app.add_option("--dt", so.dt, "sim time step (scene units)")->check(haptree::bus::positive(1.0))->capture_default_str();
+  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget, active degrees of freedom (count)")->check(CLI::Range(1, 1 << 24))->capture_default_str();
+  app.add_option("--dt", so.dt, "time step, scene time units: s for procedural and URDF scenes, ps for molecules (default: 0.001 s; 0.0005 ps for molecules)")->check(haptree::bus::positive(1.0))->capture_default_str();
   std::vector<double> gravity;
   app.add_option("--gravity", gravity,
                  "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
                  "stands for a molecule; 0,0,-9.81 for the robot scenes; molecules never have gravity)")
       ->delimiter(',')->expected(3)->check(haptree::bus::finite_in(-1e4, 1e4));
-  app.add_option("--sim-rate-hz", so.rate_hz, "sim step rate (0 = free-running)")->check(haptree::bus::finite_in(0, 1e6))->capture_default_str();
+  app.add_option("--sim-rate-hz", so.rate_hz, "simulation step rate, Hz (0 = free-running)")->check(haptree::bus::finite_in(0, 1e6))->capture_default_str();
   app.add_option("--duration-s", duration_s, "wall-clock run time, s (0 = until Ctrl-C)")
       ->check(haptree::bus::finite_in(0.0, 1e7))->capture_default_str();
   app.add_option("--viewer-port", vl.port,
-                 "web viewer at http://127.0.0.1:PORT/ (the scene live; a tab's mouse pulls as a user); 0 = off")
+                 "web viewer's HTTP/WebSocket port: http://127.0.0.1:PORT/ (the scene live; a tab's mouse pulls as a user); 0 = off")
       ->check(CLI::Range(0, 65535))->capture_default_str();
-  app.add_option("--viewer-bind", vl.bind, "address the viewer listens on (127.0.0.1: this machine only)")
+  app.add_option("--viewer-bind", vl.bind, "address the viewer listens on, IPv4 (127.0.0.1: this machine only)")
       ->capture_default_str();
   app.add_option("--viewer-users", vl.users,
-                 "users a page can be (couplers are started for max(--users, this); the ones past --users have "
+                 "users a page can be, count (couplers are started for max(--users, this); the ones past --users have "
                  "no script)")->check(CLI::Range(1, 8))->capture_default_str();
-  app.add_option("--users", users, "users (one coupler + one scripted device each, pulling different bodies)")
+  app.add_option("--users", users, "users, count (one coupler + one scripted device each, pulling different bodies)")
       ->check(CLI::Range(1, 8))->capture_default_str();
-  app.add_option("--coupler-rate-hz", coupler_rate_hz, "coupling loop rate")->check(haptree::bus::positive(1e5))->capture_default_str();
-  app.add_option("--position-scale", position_scale, "scene length per device metre")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--force-scale", force_scale, "N per scene force unit")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--stiffness", stiffness, "k_s (scene units)")->check(haptree::bus::positive(1e12))->capture_default_str();
-  app.add_option("--damping", damping, "b_s (scene units)")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
+  app.add_option("--coupler-rate-hz", coupler_rate_hz, "coupling loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
+  app.add_option("--position-scale", position_scale, "scene length units per device metre (m/m for SI scenes; nm/m for molecules; default 10, 1 for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--force-scale", force_scale, "N at the device per scene force unit (N/N for SI scenes; N per kJ/(mol nm) for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--stiffness", stiffness, "coupling stiffness k_s, scene force per scene length (N/m for SI scenes; kJ/(mol nm^2) for molecules; default 20, 200 for molecules)")->check(haptree::bus::positive(1e12))->capture_default_str();
+  app.add_option("--damping", damping, "coupling damping b_s, scene force per scene velocity (N s/m for SI scenes; kJ ps/(mol nm^2) for molecules)")->check(haptree::bus::finite_in(0, 1e12))->capture_default_str();
   app.add_option("--max-force-n", max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
   app.add_option("--stale-after-s", stale_after_s, "coupler watchdog: snapshot/pose age that counts as stale, s")
       ->check(haptree::bus::positive(10))->capture_default_str();
-  app.add_option("--pull-distance-m", pull_distance_m, "scripted pull, device metres")->check(haptree::bus::finite_in(-1, 1))->capture_default_str();
+  app.add_option("--pull-distance-m", pull_distance_m, "scripted pull distance, device m")->check(haptree::bus::finite_in(-1, 1))->capture_default_str();
   app.add_option("--lcm-url", lcm_url, "bus for all threads (memq:// keeps everything in-process; embedded mode only)")
       ->capture_default_str();
+  std::string device_kind;
+  std::vector<std::string> device_options;
+  app.add_option("--device-kind", device_kind,
+                 "user 0's device instead of the scripted pull: a device_bridge kind (" +
+                     fmt::format("{}", fmt::join(haptree::device::device_names(), " | ")) +
+                     ", or one a plug-in registers); the other users keep the script");
+  app.add_option("--device-option", device_options,
+                 "option of --device-kind's device, key=value (repeat for several; see docs/devices.md)")
+      ->check(CLI::Validator(
+          [](std::string& in) -> std::string {
+            return in.find('=') == std::string::npos || in.front() == '=' ? "'" + in + "' is not key=value" : "";
+          },
+          "KEY=VALUE"));
   haptree::tools::ProcessesOptions po;
   app.add_flag("--processes", po.enabled,
                "run sim_server, coupler(s) and device_bridge(s) as real child processes instead of threads");
@@ -133,13 +151,29 @@ int main(int argc, char** argv) {
   app.add_option("--imd-port", imd.port,
                  "serve the session over IMD on this TCP port (VMD: `mol new <pdb>`, `imd connect localhost PORT`); "
                  "molecular scenes; 0 = off")->check(CLI::Range(0, 65535))->capture_default_str();
-  app.add_option("--imd-bind", imd.bind, "IMD listen address")->capture_default_str();
-  app.add_option("--imd-version", imd.version, "IMD version: 2 (VMD) or 3")->check(CLI::IsMember({2, 3}))
+  app.add_option("--imd-bind", imd.bind, "IMD listen address, IPv4")->capture_default_str();
+  app.add_option("--imd-version", imd.version, "IMD version announced: 2 (VMD) or 3")->check(CLI::IsMember({2, 3}))
       ->capture_default_str();
   // ---- end IMD options ----
   haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
   haptree::device::add_device_limit_options(app, limits, /*with_sim_dt=*/false);
-  CLI11_PARSE(app, argc, argv);
+  std::string session_key_file;
+  app.add_option("--session-key-file", session_key_file,
+                 "session key (>= 32 bytes, chmod 600), given to every process of the session: every message "
+                 "carries a MAC and a sequence number; messages without the right MAC are dropped and counted")
+      ->envname("HAPTREE_SESSION_KEY_FILE")
+      ->each([](const std::string& path) { haptree::bus::set_process_session_key_file(path); });
+  bool json = false;
+  app.add_flag("--json", json,
+               "status as JSON for scripts: one object per line per status tick (stdout), instead of the text line");
+  const int rc = cli.parse(argc, argv, [&] {   // molecules: their own time step, device mapping and spring
+    const haptree::bus::SceneDefaults sd = haptree::bus::scene_defaults(so.scene, so.urdf);
+    haptree::bus::set_default(app, "--dt", so.dt, sd.dt);
+    haptree::bus::set_default(app, "--position-scale", position_scale, sd.position_scale);
+    haptree::bus::set_default(app, "--stiffness", stiffness, sd.stiffness);
+  });
+  if (rc >= 0) return rc;
+  if (json) spdlog::set_default_logger(spdlog::stderr_color_mt("haptree_run"));   // stdout: the status objects only
   limits.sim_dt_s = so.rate_hz > 0 ? 1.0 / so.rate_hz : limits.sim_dt_s;   // one snapshot per sim step
   if (!haptree::device::enforce_device_limits(limits, stiffness, damping, position_scale, force_scale,
                                               max_force_n, coupler_rate_hz, "haptree_run"))
@@ -188,6 +222,10 @@ int main(int argc, char** argv) {
     se.viewer_port = vl.port;
     se.viewer_bind = vl.bind;
     se.scripted_users = vl.port > 0 ? scripted_users : -1;
+    se.device_kind = device_kind;
+    se.session_key_file = session_key_file;
+    se.json = json;
+    se.device_options = device_options;
     return haptree::tools::run_processes(po, se, g_stop);
   }
   try {
@@ -237,12 +275,20 @@ int main(int argc, char** argv) {
       bo.options["pull_distance_m"] = std::to_string(pull_distance_m);
       bo.options["pull_direction"] = u % 2 == 0 ? "1,0,0" : "0,1,0";
       bo.options["hold_s"] = std::to_string(duration_s > 0 ? std::max(0.5, duration_s - 3.0) : 1e9);
+      if (u == 0 && !device_kind.empty()) {   // the user's own device instead of the script
+        bo.kind = device_kind;
+        bo.options.clear();
+        for (const auto& kv : device_options) {
+          const auto eq = kv.find('=');
+          bo.options[kv.substr(0, eq)] = kv.substr(eq + 1);
+        }
+      }
       bridges.push_back(std::make_unique<haptree::DeviceBridge>(bus, bo));
     }
     spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {}", so.scene,
                  model.nbodies - 1, model.nv, users, fmt::join(bodies, ","),
                  duration_s > 0 ? fmt::format("{:.0f} s", duration_s) : std::string("until Ctrl-C"));
-    std::unique_ptr<haptree::Viewer> viewer = start_viewer(bus, so, vl, users);
+    std::unique_ptr<haptree::Viewer> viewer = start_viewer(bus, so, vl, users, json ? stderr : stdout);
     // IMD: the ImdServer on the same bus, in its own thread (binds before the session starts).
     std::unique_ptr<haptree::ImdServer> imd_server;
     if (imd.port > 0) imd_server = std::make_unique<haptree::ImdServer>(bus, imd);
@@ -258,25 +304,35 @@ int main(int argc, char** argv) {
     const auto t0 = std::chrono::steady_clock::now();
     double max_force = 0, max_rate = 0, sum_step_ms = 0;
     int lines = 0;
-    int64_t last_it = 0;
     while (!g_stop) {
       std::this_thread::sleep_for(std::chrono::seconds(1));
       const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      std::string line = fmt::format("t {:5.1f} s | sim step {:6.3f} ms, {:3d} active DOF, {} steps", t,
-                                     server.last_step_ms(), server.active_dofs(), server.steps_done());
+      haptree::tools::StatusSample st;
+      st.t_s = t;
+      st.sim.started = server.steps_done() > 0;
+      st.sim.step_ms = server.last_step_ms();
+      st.sim.active_dofs = server.active_dofs();
+      st.sim.steps = server.steps_done();
       for (auto& c : couplers) {
         const auto& k = c->counters();
         max_force = std::max(max_force, k.force_n.load());
         max_rate = std::max(max_rate, k.rate_hz.load());
-        line += fmt::format(" | user {}: {:6.0f} Hz, |f| {:5.3f} N, snapshot age {:5.1f} ms", c->options().user,
-                            k.rate_hz.load(), k.force_n.load(), k.snapshot_age_ms.load());
+        haptree::tools::UserStatus us;
+        us.user = c->options().user;
+        us.started = true;
+        us.rate_hz = k.rate_hz.load();   // 0 until the first window closes: shown as "—"
+        us.force_n = k.force_n.load();
+        us.grab_body = k.rate_hz.load() > 0 ? k.grab_body.load() : -1;
+        us.snapshot_age_ms = k.snapshot_age_ms.load();
+        st.users.push_back(us);
       }
-      (void)last_it;
       if (imd_server) {   // IMD status
-        const auto& k = imd_server->counters();
-        line += fmt::format(" | imd :{} {}, {} frames", imd_server->port(),
-                            imd_server->client_connected() ? "receiver" : "no receiver", k.frames_sent.load());
+        st.imd.on = true;
+        st.imd.port = imd_server->port();
+        st.imd.receiver = imd_server->client_connected();
+        st.imd.frames = imd_server->counters().frames_sent.load();
       }
+      const std::string line = json ? haptree::tools::status_json(st) : haptree::tools::status_text(st);
       sum_step_ms += server.last_step_ms();
       ++lines;
       std::printf("%s\n", line.c_str());
@@ -284,31 +340,32 @@ int main(int argc, char** argv) {
       if (duration_s > 0 && t >= duration_s) break;
     }
     stop = true;
+    FILE* out = json ? stderr : stdout;   // --json: stdout carries only the status objects
     for (auto& th : threads) th.join();
     if (imd_thread.joinable()) imd_thread.join();
     handler.stop();
-    std::printf("summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
+    std::fprintf(out, "summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
                 "%lld blow-up resets\n",
                 static_cast<long long>(server.steps_done()), static_cast<long long>(server.snapshots_published()),
                 server.last_snapshot_bytes(), lines ? sum_step_ms / lines : 0.0,
                 static_cast<long long>(server.resets()));
     for (size_t u = 0; u < couplers.size(); ++u) {
       const auto& k = couplers[u]->counters();
-      std::printf("  user %zu: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
+      std::fprintf(out, "  user %zu: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
                   "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us\n",
                   u, bodies[u], static_cast<long long>(k.iterations.load()),
                   static_cast<long long>(k.snapshots_accepted.load()),
                   static_cast<long long>(couplers[u]->rejected_messages()), bridges[u]->max_force_seen_n(),
                   bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99));
     }
-    std::printf("  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
+    std::fprintf(out, "  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
     if (viewer)
-      std::printf("  viewer: %lld frames sent, %lld dropped for slow tabs, %lld pointer messages\n",
+      std::fprintf(out, "  viewer: %lld frames sent, %lld dropped for slow tabs, %lld pointer messages\n",
                   static_cast<long long>(viewer->frames_sent()), static_cast<long long>(viewer->frames_dropped()),
                   static_cast<long long>(viewer->pointer_messages()));
     if (imd_server) {   // IMD summary
       const auto& k = imd_server->counters();
-      std::printf("  imd: %lld receiver(s), %lld dropped, %lld frames sent (%lld skipped), %lld MDCOMM packets\n",
+      std::fprintf(out, "  imd: %lld receiver(s), %lld dropped, %lld frames sent (%lld skipped), %lld MDCOMM packets\n",
                   static_cast<long long>(k.clients.load()), static_cast<long long>(k.dropped.load()),
                   static_cast<long long>(k.frames_sent.load()), static_cast<long long>(k.frames_skipped.load()),
                   static_cast<long long>(k.mdcomm.load()));

@@ -29,6 +29,7 @@
 #include "haptree/dca.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/lcmt_process_stats.hpp"
+#include "tools/haptree_status.hpp"
 #include "tools/tcpq_hub.hpp"
 
 namespace haptree::tools {
@@ -331,12 +332,13 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
 
     auto fmt_d = [](double v) { return fmt::format("{}", v); };
     std::vector<std::string> common = {"--lcm-url", url, "--channel-suffix", suffix};
+    if (!se.session_key_file.empty()) common.insert(common.end(), {"--session-key-file", se.session_key_file});
     std::vector<std::string> sim = {exe_sim};
     sim.insert(sim.end(), common.begin(), common.end());
     if (!se.sim.urdf.empty()) sim.insert(sim.end(), {"--urdf", se.sim.urdf});
     sim.insert(sim.end(), {"--scene", se.sim.scene});
     if (se.sim.scene != "protein_like") sim.insert(sim.end(), {"--n", std::to_string(se.sim.n)});   // fixed size
-    sim.insert(sim.end(), {"--budget-dofs", std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--rate-hz",
+    sim.insert(sim.end(), {"--budget-dofs", std::to_string(se.sim.budget_dofs), "--dt", fmt_d(se.sim.dt), "--sim-rate-hz",
                            fmt_d(se.sim.rate_hz), "--users", std::to_string(se.users), "--max-user-force",
                            fmt_d(se.sim.max_user_force)});
     if (se.sim.gravity.allFinite())
@@ -348,13 +350,13 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       const Vec3& o = offsets[static_cast<size_t>(u)];
       std::vector<std::string> cpl = {exe_cpl};
       cpl.insert(cpl.end(), common.begin(), common.end());
-      cpl.insert(cpl.end(), {"--user", std::to_string(u), "--device", std::to_string(u), "--rate-hz",
+      cpl.insert(cpl.end(), {"--user", std::to_string(u), "--device", std::to_string(u), "--coupler-rate-hz",
                              fmt_d(se.coupler_rate_hz), "--sleep", "--stiffness", fmt_d(se.stiffness), "--damping",
                              fmt_d(se.damping), "--position-scale", fmt_d(se.position_scale), "--force-scale",
                              fmt_d(se.force_scale), "--max-force-n", fmt_d(se.max_force_n), "--grab-body",
                              std::to_string(bodies[static_cast<size_t>(u)]), "--model-fingerprint",
                              fmt::format("{:016x}", fingerprint), "--stale-after-s", fmt_d(se.stale_after_s),
-                             "--offset", fmt_d(o.x()), fmt_d(o.y()), fmt_d(o.z()), "--max-device-position-m",
+                             "--offset", fmt::format("{},{},{}", o.x(), o.y(), o.z()), "--max-device-position-m",
                              fmt_d(reaches[static_cast<size_t>(u)])});
       if (shm) cpl.push_back("--shm");
       const std::string cu = "coupler_" + std::to_string(u);
@@ -365,12 +367,21 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     for (int u = 0; u < se.users; ++u) {
       std::vector<std::string> dev = {exe_dev};
       dev.insert(dev.end(), common.begin(), common.end());
+      if (u == 0 && !se.device_kind.empty()) {   // the user's own device instead of the script
+        dev.insert(dev.end(), {"--device", "0", "--device-kind", se.device_kind, "--device-rate-hz", "1000", "--max-force-n",
+                               fmt_d(se.max_force_n)});
+        for (const auto& kv : se.device_options) dev.insert(dev.end(), {"--device-option", kv});
+        if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
+        children.push_back({"device_bridge_0", log_dir + "/device_bridge_0.log"});
+        children.back().pid = spawn(dev, children.back().log);
+        continue;
+      }
       if (browser)
-        dev.insert(dev.end(), {"--option", u < se.scripted_users ? "fallback=scripted" : "fallback=none"});
-      dev.insert(dev.end(), {"--device", std::to_string(u), "--kind", browser ? "browser" : "scripted", "--rate-hz", "1000",
-                             "--max-force-n", fmt_d(se.max_force_n), "--option", "grab_m=0,0,0.01", "--option",
-                             "pull_distance_m=" + fmt_d(se.pull_distance_m), "--option",
-                             std::string("pull_direction=") + (u % 2 == 0 ? "1,0,0" : "0,1,0"), "--option",
+        dev.insert(dev.end(), {"--device-option", u < se.scripted_users ? "fallback=scripted" : "fallback=none"});
+      dev.insert(dev.end(), {"--device", std::to_string(u), "--device-kind", browser ? "browser" : "scripted", "--device-rate-hz", "1000",
+                             "--max-force-n", fmt_d(se.max_force_n), "--device-option", "grab_m=0,0,0.01", "--device-option",
+                             "pull_distance_m=" + fmt_d(se.pull_distance_m), "--device-option",
+                             std::string("pull_direction=") + (u % 2 == 0 ? "1,0,0" : "0,1,0"), "--device-option",
                              "hold_s=" + fmt_d(se.duration_s > 0 ? std::max(0.5, se.duration_s - 3.0) : 1e9)});
       if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
       const std::string du = "device_bridge_" + std::to_string(u);
@@ -380,13 +391,12 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     if (browser) {   // the viewer (issue 12), beside the others on the same bus
       std::vector<std::string> vw = {find_executable("viewer", po.bin_dir, po.argv0)};
       vw.insert(vw.end(), common.begin(), common.end());
-      vw.insert(vw.end(), {"--port", std::to_string(se.viewer_port), "--bind", se.viewer_bind, "--scene", se.sim.scene,
-                           "--n", std::to_string(se.sim.n), "--users", std::to_string(se.users)});
+      vw.insert(vw.end(), {"--viewer-port", std::to_string(se.viewer_port), "--viewer-bind", se.viewer_bind, "--scene",
+                           se.sim.scene, "--n", std::to_string(se.sim.n), "--viewer-users", std::to_string(se.users)});
       if (!se.sim.urdf.empty()) vw.insert(vw.end(), {"--urdf", se.sim.urdf});
       children.push_back({"viewer", log_dir + "/viewer.log"});
       children.back().pid = spawn(vw, children.back().log);
-      std::printf("viewer: open http://%s:%d/\n", se.viewer_bind.c_str(), se.viewer_port);
-      std::fflush(stdout);
+      std::fprintf(se.json ? stderr : stdout, "viewer: open http://%s:%d/\n", se.viewer_bind.c_str(), se.viewer_port);
     }
     spdlog::info("haptree_run --processes: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s; "
                  "bus {} ({}), logs in {}",
@@ -416,50 +426,49 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       if (failed || Clock::now() < next_line) continue;
       next_line += std::chrono::seconds(1);
       const double t = std::chrono::duration<double>(Clock::now() - t0).count();
-      std::string line;
+      haptree::tools::StatusSample st;
+      st.t_s = t;
       {
         std::lock_guard<std::mutex> l(stats.m);
         const double step_ms = stats.have_sim ? stats.sim.latency_p50_us * 1e-3 : 0.0;
-        const int dofs = stats.have_sim && stats.sim.n_extra > 0 ? static_cast<int>(stats.sim.extra_values[0]) : 0;
-        if (!stats.have_sim) {
-          line = fmt::format("t {:5.1f} s | sim starting", t);
-        } else {
-          // real-time factor: simulated time per second (s/s; ps/s for molecules), and the share of --sim-rate-hz kept
-          const double rtf = extra_value(stats.sim, "real_time_factor"), kept = extra_value(stats.sim, "rate_fraction");
-          line = fmt::format("t {:5.1f} s | sim step {:6.3f} ms (max {:5.1f}), {:3d} active DOF, {:5.0f} steps/s, "
-                             "real-time factor {:.3g}{}",
-                             t, step_ms, extra_value(stats.sim, "max_step_ms"), dofs, stats.sim.loop_rate_hz, rtf,
-                             kept > 0 && kept < 0.9 ? fmt::format(" (BEHIND: {:.0f} % of the requested rate)", 100 * kept)
-                                                    : std::string());
-        }
         if (stats.have_sim) {
+          // real-time factor: simulated time per second (s/s; ps/s for molecules), and the share of --sim-rate-hz kept
+          st.sim.started = true;
+          st.sim.step_ms = step_ms;
+          st.sim.max_step_ms = extra_value(stats.sim, "max_step_ms");
+          st.sim.active_dofs = stats.sim.n_extra > 0 ? static_cast<int>(stats.sim.extra_values[0]) : -1;
+          st.sim.steps_per_s = stats.sim.loop_rate_hz;
+          st.sim.real_time_factor = extra_value(stats.sim, "real_time_factor");
+          st.sim.rate_fraction = extra_value(stats.sim, "rate_fraction");
           sum_step_ms += step_ms;
           ++lines;
         }
         for (int u = 0; u < se.users; ++u) {
           const auto& k = stats.couplers[static_cast<size_t>(u)];
-          const bool have = stats.have_coupler[static_cast<size_t>(u)];
-          std::lock_guard<std::mutex> l2(tally_m);
-          const int64_t feedbacks = tally[static_cast<size_t>(u)].count;
-          if (!have) {   // no stats yet: nothing to show but what the launcher read itself
-            line += fmt::format(" | user {}: coupler starting, {} feedbacks", u, feedbacks);
-            continue;
+          haptree::tools::UserStatus us;
+          us.user = u;
+          us.started = stats.have_coupler[static_cast<size_t>(u)];
+          {
+            std::lock_guard<std::mutex> l2(tally_m);
+            us.feedbacks = tally[static_cast<size_t>(u)].count;
           }
-          const double f = extra_value(k, "force_n");
-          max_rate = std::max(max_rate, k.loop_rate_hz);
-          const bool grabbing = extra_value(k, "grab_body") > 0;
-          const std::string age = !grabbing                ? std::string("released")
-                                  : k.snapshot_age_ms < 0 ? std::string("no snapshot yet")
-                                                          : fmt::format("snapshot age {:5.1f} ms", k.snapshot_age_ms);
-          line += fmt::format(" | user {}: {:6.0f} Hz, |f| {:5.3f} N, {}, {} feedbacks", u, k.loop_rate_hz, f, age,
-                              feedbacks);
+          if (us.started) {   // the coupler's stats of its last 1-s window
+            max_rate = std::max(max_rate, k.loop_rate_hz);
+            us.rate_hz = k.loop_rate_hz;
+            us.force_n = extra_value(k, "force_n");
+            us.grab_body = static_cast<int>(extra_value(k, "grab_body"));
+            us.snapshot_age_ms = k.snapshot_age_ms;
+          }
+          st.users.push_back(us);
         }
       }
+      const std::string line = se.json ? status_json(st) : status_text(st);
       std::printf("%s\n", line.c_str());
       std::fflush(stdout);
       if (se.duration_s > 0 && t >= se.duration_s) break;
     }
-    if (stop.load() && !failed) std::printf("haptree_run: interrupted, stopping the children\n");
+    FILE* out = se.json ? stderr : stdout;   // --json: stdout carries only the status objects
+    if (stop.load() && !failed) std::fprintf(out, "haptree_run: interrupted, stopping the children\n");
     if (failed) {
       const double t = std::chrono::duration<double>(Clock::now() - t0).count();
       std::fprintf(stderr, "haptree_run: child %s (pid %d) stopped on its own after %.1f s: %s. Last lines of %s:\n",
@@ -478,7 +487,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     long long steps = 0, snaps = 0;
     const std::string sl = find_line(children[0].log, "sim_server: ");
     if (!sl.empty()) std::sscanf(sl.c_str() + sl.find("sim_server: "), "sim_server: %lld steps, %lld snapshots", &steps, &snaps);
-    std::printf("summary: %lld sim steps (%lld snapshots), mean sampled step %.3f ms\n", steps, snaps,
+    std::fprintf(out, "summary: %lld sim steps (%lld snapshots), mean sampled step %.3f ms\n", steps, snaps,
                 lines ? sum_step_ms / lines : 0.0);
     for (int u = 0; u < se.users; ++u) {
       long long it = 0, acc = 0, rej = 0, readings = 0, feedbacks = 0;
@@ -494,16 +503,16 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                     "p99 %lf us",
                     &readings, &feedbacks, &fmax, &p50, &p99);
       const auto& t = tally[static_cast<size_t>(u)];
-      std::printf("  user %d: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
+      std::fprintf(out, "  user %d: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
                   "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us, "
                   "%lld feedbacks applied by the device\n",
                   u, bodies[static_cast<size_t>(u)], it, acc, rej, fmax, p50, p99, feedbacks);
-      std::printf("  user %d: launcher saw %lld feedback messages (%lld non-finite)\n", u,
+      std::fprintf(out, "  user %d: launcher saw %lld feedback messages (%lld non-finite)\n", u,
                   static_cast<long long>(t.count), static_cast<long long>(t.nonfinite));
     }
-    std::printf("  peak coupler rate %.0f Hz (1-s windows)\n", max_rate);
+    std::fprintf(out, "  peak coupler rate %.0f Hz (1-s windows)\n", max_rate);
     if (hub)
-      std::printf("  hub 127.0.0.1:%d: %lld messages in, %lld out, %lld dropped\n", hub->port(),
+      std::fprintf(out, "  hub 127.0.0.1:%d: %lld messages in, %lld out, %lld dropped\n", hub->port(),
                   static_cast<long long>(hub->messages_in()), static_cast<long long>(hub->messages_out()),
                   static_cast<long long>(hub->messages_dropped()));
     std::string exits;
@@ -512,8 +521,8 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       exits += fmt::format(" {} {}", c.name, c.reaped ? describe_status(c.status) : "not reaped");
       if (!clean_exit(c)) ++bad;
     }
-    std::printf("  children:%s; logs in %s\n", exits.c_str(), log_dir.c_str());
-    std::fflush(stdout);
+    std::fprintf(out, "  children:%s; logs in %s\n", exits.c_str(), log_dir.c_str());
+    std::fflush(out);
     if (failed || bad) {
       std::fprintf(stderr, "haptree_run: %d child process(es) failed (see above and the logs in %s)\n",
                    failed && bad == 0 ? 1 : bad, log_dir.c_str());

@@ -3,6 +3,7 @@
 // executables as child processes on this host (docs/processes.md).
 #include <atomic>
 #include <string>
+#include <vector>
 
 #include "sim_server/sim_server.hpp"
 
@@ -31,6 +32,12 @@ struct SessionOptions {
   int viewer_port = 0;
   std::string viewer_bind = "127.0.0.1";
   int scripted_users = -1;
+  // User 0's device: "" = the scripted pull (or the page's browser device); otherwise a registry kind
+  // (device_bridge --device-kind) with these key=value options instead of the script's.
+  std::string device_kind;
+  std::vector<std::string> device_options;
+  std::string session_key_file;   // "" = none (or $HAPTREE_SESSION_KEY_FILE, which the children inherit)
+  bool json = false;              // status as one JSON object per line
 };
 
 // "" if this process runs in a network namespace other than PID 1's and without a default route

@@ -13,7 +13,7 @@ ip route add 224.0.0.0/4 dev lo 2>/dev/null || true
 "$B/sim_server/sim_server" --lcm-url "$URL" --scene bacteriorhodopsin --dt 0.0005 --users 1 --display-rate-hz 30 \
   > /tmp/imd_measure_sim.log 2>&1 &
 SIM=$!
-"$B/imd_bridge/imd_bridge" --lcm-url "$URL" --scene bacteriorhodopsin --user-id 0 --port 8888 \
+"$B/imd_bridge/imd_bridge" --lcm-url "$URL" --scene bacteriorhodopsin --imd-user 0 --imd-port 8888 \
   --imd-version "$VERSION" $EXTRA > /tmp/imd_measure_bridge.log 2>&1 &
 IMD=$!
 for _ in $(seq 200); do grep -q "serving" /tmp/imd_measure_bridge.log && break; sleep 0.1; done

@@ -6,28 +6,31 @@
 #include <cstdio>
 
 #include "haptree/bus/cli.hpp"
+#include "haptree/bus/session_config.hpp"
 #include "viewer/viewer.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree viewer: serves a web page with the live scene (NGL), the grabs, the feedback forces and a\n"
                "HUD; a tab's mouse drives the `browser` device of a free user (device_bridge --kind browser).\n"
                "Works beside any session: embedded, --processes, across hosts, or an lcm-logplayer replay."};
+  haptree::bus::ProgramCli cli(app, "viewer",
+                               {{"--bind", "--viewer-bind"}, {"--port", "--viewer-port"}, {"--users", "--viewer-users"}});
   haptree::ViewerOptions o;
   haptree::bus::BusOptions b;
-  haptree::bus::add_bus_options(app, b);
-  app.add_option("--bind", o.bind, "address to listen on (127.0.0.1: this machine only)")->capture_default_str();
-  app.add_option("--port", o.port, "HTTP/WebSocket port (0 = any free port, printed)")
+  haptree::bus::add_bus_options(app, b, /*shm_link=*/false, /*mirror=*/false);
+  app.add_option("--viewer-bind", o.bind, "address to listen on (127.0.0.1: this machine only)")->capture_default_str();
+  app.add_option("--viewer-port", o.port, "HTTP/WebSocket port (0 = any free port, printed)")
       ->check(CLI::Range(0, 65535))->capture_default_str();
-  app.add_option("--web-dir", o.web_dir, "folder with index.html, viewer.js, vendor/ngl.js (default: the source tree's viewer/web)");
+  app.add_option("--web-dir", o.web_dir, "folder (path) with index.html, viewer.js, vendor/ngl.js (default: the source tree's viewer/web)");
   app.add_option("--scene", o.scene, "the session's scene, as given to sim_server (procedural name, molecule name or PDB)")
       ->capture_default_str();
-  app.add_option("--n", o.n, "bodies of a procedural scene")->capture_default_str();
+  app.add_option("--n", o.n, "bodies of a procedural scene (count)")->capture_default_str();
   app.add_option("--urdf", o.urdf, "URDF file (overrides --scene)");
-  app.add_option("--users", o.users, "user ids a tab may take (each needs a coupler and a browser device)")
+  app.add_option("--viewer-users", o.users, "users a page can be, count: user ids 0..N-1 (each needs a coupler and a browser device)")
       ->check(CLI::Range(1, 8))->capture_default_str();
-  app.add_option("--max-fps", o.max_fps, "frames per second sent to each tab")->check(CLI::Range(1.0, 240.0))
+  app.add_option("--max-fps", o.max_fps, "frames sent to each tab, per second")->check(CLI::Range(1.0, 240.0))
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
+  if (const int rc = cli.parse(argc, argv); rc >= 0) return rc;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
   try {

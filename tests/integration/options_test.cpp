@@ -53,16 +53,16 @@ struct Case {
 TEST(Options, OutOfRangeValuesAreRefusedInPlainWords) {
   const std::string memq = "memq://";
   const std::vector<Case> cases = {
-      {{HAPTREE_COUPLER, "--rate-hz", "0"}, "--rate-hz"},
-      {{HAPTREE_COUPLER, "--rate-hz", "-5"}, "--rate-hz"},
-      {{HAPTREE_COUPLER, "--rate-hz", "nan"}, "--rate-hz"},
+      {{HAPTREE_COUPLER, "--coupler-rate-hz", "0"}, "--coupler-rate-hz"},
+      {{HAPTREE_COUPLER, "--coupler-rate-hz", "-5"}, "--coupler-rate-hz"},
+      {{HAPTREE_COUPLER, "--coupler-rate-hz", "nan"}, "--coupler-rate-hz"},
       {{HAPTREE_COUPLER, "--max-force-n", "-1"}, "--max-force-n"},
       {{HAPTREE_COUPLER, "--stiffness", "nan"}, "--stiffness"},
       {{HAPTREE_COUPLER, "--stale-after-s", "0"}, "--stale-after-s"},
       {{HAPTREE_COUPLER, "--user-force-rate-hz", "inf"}, "--user-force-rate-hz"},
       {{HAPTREE_COUPLER, "--force-scale", "0"}, "--force-scale"},
       {{HAPTREE_COUPLER, "--model-fingerprint", "not-hex"}, "--model-fingerprint"},
-      {{HAPTREE_DEVICE_BRIDGE, "--rate-hz", "0"}, "--rate-hz"},
+      {{HAPTREE_DEVICE_BRIDGE, "--device-rate-hz", "0"}, "--device-rate-hz"},
       {{HAPTREE_DEVICE_BRIDGE, "--max-force-n", "nan"}, "--max-force-n"},
       {{HAPTREE_SIM_SERVER, "--dt", "0"}, "--dt"},
       {{HAPTREE_SIM_SERVER, "--dt", "-0.001"}, "--dt"},
@@ -70,8 +70,10 @@ TEST(Options, OutOfRangeValuesAreRefusedInPlainWords) {
       {{HAPTREE_SIM_SERVER, "--users", "-3"}, "--users"},
       {{HAPTREE_SIM_SERVER, "--budget-dofs", "-1"}, "--budget-dofs"},
       {{HAPTREE_SIM_SERVER, "--n", "0"}, "--n"},
-      {{HAPTREE_SIM_SERVER, "--rate-hz", "-1"}, "--rate-hz"},
+      {{HAPTREE_SIM_SERVER, "--sim-rate-hz", "-1"}, "--sim-rate-hz"},
       {{HAPTREE_SIM_SERVER, "--max-user-force", "0"}, "--max-user-force"},
+      {{HAPTREE_IMD_BRIDGE, "--scene", "ala20", "--imd-port", "70000"}, "--imd-port"},
+      {{HAPTREE_VIEWER, "--viewer-port", "-1"}, "--viewer-port"},
       {{HAPTREE_RUN, "--dt", "0"}, "--dt"},
       {{HAPTREE_RUN, "--coupler-rate-hz", "0"}, "--coupler-rate-hz"},
       {{HAPTREE_RUN, "--sim-rate-hz", "nan"}, "--sim-rate-hz"},
@@ -100,10 +102,10 @@ TEST(Options, SigtermStopsEveryLoopPromptly) {
   const std::string dir = ::testing::TempDir();
   const std::vector<std::vector<std::string>> procs = {
       // --clamp-gains: at 1 Hz the default stiffness exceeds the passivity bound 2b/T (device_info.hpp)
-      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1", "--clamp-gains"},
-      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--rate-hz", "1", "--sleep", "--clamp-gains"},
-      {HAPTREE_DEVICE_BRIDGE, "--lcm-url", "memq://", "--rate-hz", "1"},
-      {HAPTREE_SIM_SERVER, "--lcm-url", "memq://", "--scene", "chain", "--n", "8", "--rate-hz", "1"},
+      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--coupler-rate-hz", "1", "--clamp-gains"},
+      {HAPTREE_COUPLER, "--lcm-url", "memq://", "--coupler-rate-hz", "1", "--sleep", "--clamp-gains"},
+      {HAPTREE_DEVICE_BRIDGE, "--lcm-url", "memq://", "--device-rate-hz", "1"},
+      {HAPTREE_SIM_SERVER, "--lcm-url", "memq://", "--scene", "chain", "--n", "8", "--sim-rate-hz", "1"},
   };
   int i = 0;
   for (const auto& args : procs) {
