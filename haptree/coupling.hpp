@@ -1,4 +1,4 @@
-// O(log n) force-feedback coupling (ALGORITHMS §11–§12; Morin & Redon §III–IV), single- and
+// O(log n) force-feedback coupling (docs/algorithms.md §11–§12; Morin & Redon §III–IV), single- and
 // multi-point, computed from a self-contained coefficient snapshot, plus the virtual coupling that
 // turns a device pose into the user force and the device <-> scene unit mapping.
 //
@@ -92,7 +92,7 @@ constexpr int kGrabValues = 15;
 // coupling_forces uses. Repeated bodies are allowed.
 // Throws std::invalid_argument (with the grab index) on a bad body id or a size mismatch.
 // Reuses `out`'s capacity: once sized by an equal or larger grab set, it does not allocate.
-// Subnormals (issue 13.3): every subnormal value of the snapshot is set to 0 (an absolute change
+// Subnormals: every subnormal value of the snapshot is set to 0 (an absolute change
 // below 2⁻¹⁰²² ≈ 2.2e-308 per value). On a 65 536-chain the Φ columns of deep, long segments decay
 // to 5e-324, and each subnormal operand costs Intel CPUs ~100 cycles in coupling_forces; the
 // consumer of a snapshot (another process, Python) then needs no FP-mode change. `flush_tiny =

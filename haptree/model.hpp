@@ -34,7 +34,7 @@ struct Model {
   std::vector<JointType> joint_type;                // (nbodies)
   std::vector<int> q_adr, v_adr, v_num;             // (nbodies)
   // Joint frame placement in the parent body frame (at q = 0). The successor body frame is the
-  // joint frame moved by the joint: its origin is the joint's handle point (ALGORITHMS §2.3).
+  // joint frame moved by the joint: its origin is the joint's handle point (docs/algorithms.md §2.3).
   std::vector<Mat3> joint_rotation;                 // (nbodies)
   std::vector<Vec3> joint_offset;                   // (nbodies)
   std::vector<Vec3> joint_axis;                     // (nbodies) unit, joint frame (rev/prism)
@@ -47,7 +47,7 @@ struct Model {
   // Rigid clusters: bodies joined by fixed joints (e.g. the pieces of a degree-reduced hub). An
   // internal assembly node whose handles all attach to one cluster is assembled in inertia form
   // (ABA-style sums of articulated inertias) instead of by the mobility difference formula, which
-  // cancels when a light piece is joined rigidly to a heavy assembly (ALGORITHMS §4.4).
+  // cancels when a light piece is joined rigidly to a heavy assembly (docs/algorithms.md §4.4).
   enum class ClusterCase : std::uint8_t { kNone, kFixedMerge, kProjectP, kProjectQ, kGroundPin };
   std::vector<int> cluster_root;                    // (nbodies) top body of k's fixed-joint cluster
   std::vector<int> cluster_index;                   // (nnodes) slot in Data's cluster arrays, or -1
@@ -55,7 +55,7 @@ struct Model {
   std::vector<int> cluster_pin;                     // (nnodes) joint pinning the cluster to the ground, or -1
   // Body whose origin is the reference point of a leaf or an inertia-form node's (M, p): the leaf's
   // body; for a merge the reference of the heavier side. Never the cluster root as such: a weld far
-  // from its parent's frame would put every inertia of the far side at a far point (issue 14).
+  // from its parent's frame would put every inertia of the far side at a far point (an ill-conditioned shift).
   std::vector<int> cluster_ref;                     // (nnodes) body id, or -1
   int ncluster_nodes = 0;
   std::uint64_t fingerprint = 0;                    // hash of everything above (canonical order)
@@ -67,7 +67,7 @@ struct Model {
 
 struct BuildOptions {
   // Bodies with more children than this are split into a chain of pieces joined by fixed joints so
-  // the assembly tree stays logarithmic (ALGORITHMS §4.4). Costs accuracy in proportion to the
+  // the assembly tree stays logarithmic (docs/algorithms.md §4.4). Costs accuracy in proportion to the
   // degree; 0 disables it. The ground is never split.
   int max_children = 0;
 };

@@ -89,7 +89,7 @@ class ForceSafety {
 
 // What a device renders each tick from the latest FEEDBACK: NaN -> 0, clamped, times the device's own
 // watchdog gain on the feedback's age (stale: ramp to zero; fresh again: ramp back in), and never changing by
-// more than max_step per tick, a jerk guard at the hand (issue 15.2). The device_bridge renders with it, and
+// more than max_step per tick, a jerk guard at the hand (docs/network_faults.md). The device_bridge renders with it, and
 // the chaos soak's monitor renders the same way.
 class FeedbackRenderer {
  public:

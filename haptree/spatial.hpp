@@ -1,4 +1,4 @@
-// Spatial algebra (ALGORITHMS.md §1): Plücker vectors [angular; linear], world-aligned axes,
+// Spatial algebra (docs/algorithms.md §1): Plücker vectors [angular; linear], world-aligned axes,
 // expressed at an explicit reference point. Plain Eigen fixed-size types and free functions.
 #pragma once
 
