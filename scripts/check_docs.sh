@@ -13,6 +13,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PAGES=(
+  README.md
   docs/accuracy_and_stability.md
   docs/algorithms.md
   docs/chaos.md
@@ -26,6 +27,7 @@ PAGES=(
   docs/security.md
   docs/sessions.md
   docs/troubleshooting.md
+  docs/viewer.md
 )
 
 files=("$@")
