@@ -1,4 +1,4 @@
-// Ideal-geometry builders for test molecules (own code; geometry as shared/data/tools/build_models.py).
+// Ideal-geometry builders for test molecules (the geometry of data/molecules/tools/build_models.py).
 #pragma once
 
 #include "haptree/molecule/structure.hpp"
