@@ -56,7 +56,7 @@ int main(int argc, char** argv) {
           "HEX"));
   haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
   haptree::device::add_device_limit_options(app, limits);
-  haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::RealtimeOptions rt;   // docs/benchmarks.md, "real-time haptic loop"
   haptree::bus::add_realtime_options(app, rt,
                                      "with busy-wait pacing, iterate as soon as a new device pose arrives instead of "
                                      "at the next tick (pose-to-force latency; the rate stays --coupler-rate-hz)");

@@ -10,6 +10,7 @@
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
 #include "haptree/bus/session_config.hpp"
+#include "haptree/device/registry.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
@@ -21,11 +22,17 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
   app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>; picks the session file's [user.N])")->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--device-kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --device-option fallback=scripted keeps the script until the page's first press)")->capture_default_str();
+  std::string kinds;
+  for (const auto& k : haptree::device::device_names()) kinds += (kinds.empty() ? "" : " | ") + k;
+  app.add_option("--device-kind", o.kind,
+                 "the device, by name: " + kinds +
+                     " (browser: the mouse in the viewer's page; --device-option fallback=scripted keeps the script "
+                     "until the page's first press)")
+      ->capture_default_str();
   app.add_option("--device-option", kv, "device option key=value, repeated (e.g. pull_distance_m=0.03, log=FILE)");
   app.add_option("--device-rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
-  haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::RealtimeOptions rt;   // docs/benchmarks.md, "real-time haptic loop"
   haptree::bus::add_realtime_options(app, rt,
                                      "after publishing a pose, poll shared-memory feedback until its answer arrives "
                                      "(then sleep to the next tick) instead of waiting for the next tick");

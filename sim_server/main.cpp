@@ -62,7 +62,7 @@ int main(int argc, char** argv) {
                  "per scene length): larger ones are clamped, non-finite ones zeroed, both counted. Default: "
                  "2 x the coupler's default max_force_n / force_scale (2 x 3 N / 0.5)")
       ->check(haptree::bus::positive(1e12))->capture_default_str();
-  // ---- trajectory (issue 12) ----
+  // ---- trajectory ----
   app.add_option("--trajectory", o.trajectory,
                  "record atom positions (molecules) or body origins to FILE: .dcd (CHARMM/NAMD binary) or .pdb "
                  "(multi-model), in angstrom");
@@ -72,7 +72,7 @@ int main(int argc, char** argv) {
                  "> 0: scene time between frames instead (ps for molecules, s otherwise)")
       ->check(CLI::NonNegativeNumber)->capture_default_str();
   // ---- end trajectory ----
-  haptree::bus::RealtimeOptions rt;   // issue 15.1: e.g. --cpu-affinity to keep the server off the coupler's CPU
+  haptree::bus::RealtimeOptions rt;   // e.g. --cpu-affinity to keep the server off the coupler's CPU
   haptree::bus::add_realtime_options(app, rt);
   const int rc = cli.parse(argc, argv, [&] {   // a molecule's own time step unless one is given
     haptree::bus::set_default(app, "--dt", o.dt, haptree::bus::scene_defaults(o.scene, o.urdf).dt);

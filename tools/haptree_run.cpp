@@ -37,7 +37,7 @@ namespace {
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
 
-// The viewer (issue 12), embedded: the same class as the `viewer` executable, on the session's bus.
+// The viewer, embedded: the same class as the `viewer` executable, on the session's bus.
 struct ViewerLaunch {
   int port = 8080;              // 0 = no viewer
   std::string bind = "127.0.0.1";
@@ -144,7 +144,7 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.0, 10000.0))->capture_default_str();
   app.add_option("--log-dir", po.log_dir,
                  "--processes: folder for the children's logs (default: a new /tmp/haptree_run.XXXXXX)");
-  // ---- IMD (issue 16): --imd-port serves the session over IMD from inside the launcher; the IMD pull
+  // ---- IMD: --imd-port serves the session over IMD from inside the launcher; the IMD pull
   // is one more user (id = --users), which sim_server listens to. ----
   haptree::ImdServerOptions imd;
   imd.port = 0;   // 0 here = off

@@ -71,7 +71,7 @@ inline std::atomic<bool>& install_stop_signals() {
   static std::atomic<bool> stop{false};
   auto on_signal = [](int) {
     stop = true;
-    unlink_own_shm_segments();   // issue 11, defect 8: nothing left even if a loop is slow to stop
+    unlink_own_shm_segments();   // nothing left even if a loop is slow to stop
   };
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);

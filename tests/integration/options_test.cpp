@@ -1,4 +1,4 @@
-// Issue 11, defect 7: the real executables refuse out-of-range option values in plain words (they used
+// The real executables refuse out-of-range option values in plain words (they used
 // to accept them: `coupler --rate-hz 0` spun at 100 % CPU and ignored SIGTERM), and SIGTERM stops every
 // loop — the coupler's busy-wait pacing included — within a fraction of a second. memq:// keeps each
 // process to itself: an accepted bad value would make it run, not fail on the network.
