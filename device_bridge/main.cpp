@@ -10,7 +10,6 @@
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
 #include "haptree/bus/session_config.hpp"
-#include "haptree/device/registry.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
@@ -22,14 +21,16 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
   app.add_option("--device", o.device, "device id (HAPTREE_DEVICE_STATE_<id>, HAPTREE_FEEDBACK_<id>; picks the session file's [user.N])")->check(CLI::Range(0, 1000000))->capture_default_str();
-  std::string kinds;
-  for (const auto& k : haptree::device::device_names()) kinds += (kinds.empty() ? "" : " | ") + k;
   app.add_option("--device-kind", o.kind,
-                 "the device, by name: " + kinds +
-                     " (browser: the mouse in the viewer's page; --device-option fallback=scripted keeps the script "
-                     "until the page's first press)")
+                 "the device, by name: scripted | virtual_hand | replay | browser (the mouse in the viewer's page; "
+                 "--device-option fallback=scripted keeps the script until the page's first press) | openhaptics (3D "
+                 "Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon); docs/devices.md")
       ->capture_default_str();
-  app.add_option("--device-option", kv, "device option key=value, repeated (e.g. pull_distance_m=0.03, log=FILE)");
+  app.add_option("--device-option", kv, "device option key=value, repeated (e.g. pull_distance_m=0.03, log=FILE; real "
+                                        "devices: lib=PATH, axes=y,z,x, openhaptics name=NAME, forcedimension id=N)");
+  bool probe = false;
+  app.add_flag("--probe", probe, "open the device, print its model, serial, limits, position and buttons, close it "
+                                 "and exit (0; 1 if it cannot be opened or read). Force output stays off");
   app.add_option("--device-rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
   haptree::bus::RealtimeOptions rt;   // docs/benchmarks.md, "real-time haptic loop"
@@ -40,6 +41,9 @@ int main(int argc, char** argv) {
                  "bound on any change of the rendered force, N/s (a jerk guard at the hand); 0: the clamp within "
                  "5 ms, 600 N/s for 3 N. FEEDBACK older than 10 ms ramps to zero in 5 ms, and back in over 0.1 s")
       ->check(CLI::Range(0.0, 1e6))->capture_default_str();
+  app.add_option("--feedback-timeout-s", o.feedback_timeout_s,
+                 "FEEDBACK older than this ramps the force to zero (the device's own watchdog), s")
+      ->check(CLI::Range(1e-4, 10.0))->capture_default_str();
   if (const int rc = cli.parse(argc, argv); rc >= 0) return rc;
   o.busy_poll = rt.busy_poll;
   for (const auto& s : kv) {
@@ -50,6 +54,8 @@ int main(int argc, char** argv) {
     }
     o.options[s.substr(0, eq)] = s.substr(eq + 1);
   }
+  if (probe) return haptree::probe_device(o, 0.2, stdout, stderr);
+  haptree::install_device_crash_handlers();   // a crash still writes zero force to a real device
   o.shm = b.shm;
   o.mirror_rate_hz = b.mirror_rate_hz;
   o.channel_suffix = b.channel_suffix;
@@ -66,6 +72,9 @@ int main(int argc, char** argv) {
     haptree::DeviceBridge bridge(bus, o);
     const int rc = bridge.run(g_stop);
     handler.stop();
+    if (rc == haptree::kExitDeviceFault)
+      spdlog::critical("device_bridge {}: {}; zero force and torque written, force output off, device closed",
+                       o.device, bridge.fault());
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
                  "p99 {:.1f} us ({} samples), p99.9 {:.1f} us, max force step {:.4f} N/tick",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),

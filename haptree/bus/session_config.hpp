@@ -51,14 +51,14 @@ inline const std::map<std::string, std::set<std::string>>& session_programs() {
         "timer-slack-ns"}},
       {"coupler",
        {"lcm-url", "channel-suffix", "session-key-file", "shm", "user", "device", "coupler-rate-hz", "sleep",
-        "stiffness", "damping", "position-scale", "force-scale", "offset", "grab-body", "max-force-n",
+        "stiffness", "damping", "position-scale", "force-scale", "offset", "grab-body", "grab-radius", "max-force-n",
         "stale-after-s", "user-force-rate-hz", "max-device-position-m", "model-fingerprint", "device-model",
         "clamp-gains", "device-damping-n-s-per-m", "sim-dt-s", "sched-fifo", "mlockall", "cpu-affinity",
         "timer-slack-ns", "busy-poll"}},
       {"device_bridge",
        {"lcm-url", "channel-suffix", "session-key-file", "shm", "mirror-rate-hz", "device", "device-kind",
-        "device-option", "device-rate-hz", "max-force-n", "max-force-rate-n-per-s", "sched-fifo", "mlockall",
-        "cpu-affinity", "timer-slack-ns", "busy-poll"}},
+        "device-option", "probe", "device-rate-hz", "max-force-n", "max-force-rate-n-per-s", "feedback-timeout-s",
+        "sched-fifo", "mlockall", "cpu-affinity", "timer-slack-ns", "busy-poll"}},
       {"viewer",
        {"lcm-url", "channel-suffix", "session-key-file", "viewer-bind", "viewer-port", "web-dir", "scene", "n",
         "urdf", "viewer-users", "max-fps"}},
@@ -80,7 +80,8 @@ inline const std::map<std::string, std::set<std::string>>& session_programs() {
 inline const std::set<std::string>& session_user_keys() {
   static const std::set<std::string> keys = {
       "device-kind", "device-option", "device-model", "device-rate-hz", "stiffness", "damping", "position-scale",
-      "force-scale", "offset", "grab-body", "max-force-n", "max-force-rate-n-per-s", "max-device-position-m",
+      "force-scale", "offset", "grab-body", "grab-radius", "max-force-n", "max-force-rate-n-per-s", "feedback-timeout-s",
+      "max-device-position-m",
       "device-damping-n-s-per-m", "clamp-gains", "shm", "sleep", "busy-poll", "cpu-affinity", "sched-fifo"};
   return keys;
 }
