@@ -1,11 +1,14 @@
 #include "haptree/device/inverse3.hpp"
 
+#include "haptree/device/vendor_library.hpp"
+
 #define ASIO_STANDALONE
 #define _WEBSOCKETPP_CPP11_STL_
 #include <nlohmann/json.hpp>
 #include <websocketpp/client.hpp>
 #include <websocketpp/config/asio_no_tls_client.hpp>
 
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -82,29 +85,6 @@ const json* find_device(const json& msg, const char* kind, const std::string& id
 }
 
 }  // namespace
-
-Mat3 parse_axes(const std::string& axes) {
-  const std::string bad = "device option axes='" + axes +
-                          "': expected three signed device axes for the view's x, y, z, e.g. x,z,-y";
-  Mat3 a = Mat3::Zero();
-  std::istringstream in(axes);
-  std::string tok;
-  int row = 0;
-  bool used[3] = {false, false, false};
-  while (std::getline(in, tok, ',')) {
-    if (row >= 3) throw std::invalid_argument(bad);
-    double sign = 1;
-    size_t i = 0;
-    if (i < tok.size() && (tok[i] == '+' || tok[i] == '-')) sign = tok[i++] == '-' ? -1 : 1;
-    if (i + 1 != tok.size()) throw std::invalid_argument(bad);
-    const char c = static_cast<char>(std::tolower(static_cast<unsigned char>(tok[i])));
-    if (c < 'x' || c > 'z' || used[c - 'x']) throw std::invalid_argument(bad);
-    used[c - 'x'] = true;
-    a(row++, c - 'x') = sign;
-  }
-  if (row != 3) throw std::invalid_argument(bad);
-  return a;
-}
 
 // The I/O side: everything here runs on the device's own thread (asio's), except open()'s wait.
 struct Inverse3Device::Io {
@@ -195,11 +175,8 @@ struct Inverse3Device::Io {
       if (g && gs != g->end() && gs->is_object()) {
         Quat q;
         auto o = gs->find("orientation");
-        if (o != gs->end() && read_quat(*o, q)) {
-          const Mat3 r = dev.axes_ * q.toRotationMatrix() * dev.axes_.transpose();
-          // An improper axes map (det -1) turns a rotation into a reflection: keep the last orientation.
-          if (r.determinant() > 0) s.orientation = Quat(r).normalized();
-        }
+        if (o != gs->end() && read_quat(*o, q))
+          s.orientation = Quat(dev.axes_ * q.toRotationMatrix() * dev.axes_.transpose()).normalized();
         int32_t b = 0;
         if (wireless) {
           auto bs = gs->find("buttons");
@@ -258,21 +235,30 @@ struct Inverse3Device::Io {
       return;
     }
     // "Inverse3 049D (firmware 7.4, right-handed)" from the config, where given.
-    std::string d = "Inverse3 " + dev.device_id_;
+    // "Haply Inverse3 (version 7.4, right-handed)" from the config, where given.
+    std::string type = "Inverse3", details;
     auto cfg = inv->find("config");
     if (cfg != inv->end() && cfg->is_object()) {
       auto t = cfg->find("type");
-      if (t != cfg->end() && t->is_string()) d = t->get<std::string>() + " " + dev.device_id_;
+      if (t != cfg->end() && t->is_string() && !t->get<std::string>().empty()) {
+        type = t->get<std::string>();
+        type[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(type[0])));
+      }
       auto info = cfg->find("device_info");
       if (info != cfg->end() && info->is_object()) {
         auto ma = info->find("major_version"), mi = info->find("minor_version");
         if (ma != info->end() && mi != info->end() && ma->is_number_integer() && mi->is_number_integer())
-          d += ", version " + std::to_string(ma->get<int64_t>()) + "." + std::to_string(mi->get<int64_t>());
+          details += "version " + std::to_string(ma->get<int64_t>()) + "." + std::to_string(mi->get<int64_t>());
       }
       auto h = cfg->find("handedness");
-      if (h != cfg->end() && h->is_string()) d += ", " + h->get<std::string>() + "-handed";
+      if (h != cfg->end() && h->is_string()) details += (details.empty() ? "" : ", ") + h->get<std::string>() + "-handed";
     }
-    if (!dev.grip_id_.empty()) d += ", Verse Grip " + dev.grip_id_;
+    dev.model_ = "Haply " + type + (details.empty() ? "" : " (" + details + ")");
+    std::string d = dev.model_ + " " + dev.device_id_;
+    if (!dev.grip_id_.empty()) {
+      d += ", Verse Grip " + dev.grip_id_;
+      dev.grip_buttons_ = find_device(msg, "wireless_verse_grip", dev.grip_id_) ? 3 : 1;
+    }
     dev.description_ = d;
     if (!parse_state(msg, last)) {
       fail_open("inverse3: the Inverse Service's first message has no valid state for Inverse3 " + dev.device_id_);
@@ -338,7 +324,7 @@ struct Inverse3Device::Io {
     if (now - last_good_s > dev.p_.timeout_s) return lose(kNoValidState);
     if (!awaiting) {
       dev.command_box_.update();
-      Vec3 f = dev.command_box_.front().force_n;
+      Vec3 f = dev.force_on_.load(std::memory_order_acquire) ? dev.command_box_.front().force_n : Vec3::Zero();
       const double n = f.norm();
       if (n > dev.spec_.max_force_n) f *= dev.spec_.max_force_n / n;   // second guard after the bridge's clamp
       send_force(dev.axes_.transpose() * f);
@@ -347,8 +333,18 @@ struct Inverse3Device::Io {
   }
 };
 
+namespace {
+Mat3 axes_option(const std::string& axes) {
+  try {
+    return AxisMap::parse(axes).matrix();
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("device option ") + e.what());
+  }
+}
+}  // namespace
+
 Inverse3Device::Inverse3Device(const DeviceSpec& spec, const Inverse3Params& p)
-    : spec_(spec), p_(p), axes_(parse_axes(p.axes)) {
+    : spec_(spec), p_(p), axes_(axes_option(p.axes)) {
   if (p_.url.rfind("ws://", 0) != 0)
     throw std::invalid_argument("device option url='" + p_.url + "': expected ws://host:port (the Inverse Service)");
   if (!(p_.rate_hz > 0 && p_.rate_hz <= 10000)) throw std::invalid_argument("device 'inverse3': rate_hz must be in (0, 10000]");
@@ -419,13 +415,38 @@ Status Inverse3Device::open() {
   });
   std::unique_lock<std::mutex> lock(io.m);
   const bool answered = io.cv.wait_for(lock, std::chrono::duration<double>(p_.connect_timeout_s), [&io] { return io.phase != 0; });
-  if (answered && io.phase == 1) return Status::Ok();
+  if (answered && io.phase == 1) {
+    // A crash of the bridge: force off (one atomic store) so a still-running I/O thread sends zero; when
+    // the process is gone its socket closes and the service, getting no more commands, idles the device.
+    register_emergency_stop(this, [](void* self) noexcept {
+      static_cast<Inverse3Device*>(self)->force_on_.store(false, std::memory_order_release);
+    });
+    return Status::Ok();
+  }
   open_error_ = answered ? io.error
                          : "inverse3: no device list from " + p_.url + " within " + std::to_string(p_.connect_timeout_s) +
                                " s: is it the Inverse Service?";
   lock.unlock();
   close();
   return Status::Error(open_error_.c_str());
+}
+
+DeviceDescription Inverse3Device::describe() const {
+  DeviceDescription d;
+  d.model = model_;
+  d.serial = device_id_;
+  d.max_torque_nm = 0;   // no actuated rotation; the service reports no other limit
+  d.buttons = grip_buttons_;
+  d.orientation = !grip_id_.empty();
+  d.torque = false;
+  d.axes = AxisMap::parse(p_.axes).str();
+  return d;
+}
+
+Status Inverse3Device::enable_force(bool on) noexcept {
+  force_on_.store(on, std::memory_order_release);
+  const int link = link_.load(std::memory_order_acquire);
+  return link == kUp || !on ? Status::Ok() : Status::Error(kLinkReason[link]);
 }
 
 Status Inverse3Device::read(double time_s, DeviceReading& out) noexcept {
@@ -448,7 +469,7 @@ Status Inverse3Device::read(double time_s, DeviceReading& out) noexcept {
 
 Status Inverse3Device::write(const Vec3& force_n, const Vec3& torque_nm) noexcept {
   if (!force_n.allFinite() || !torque_nm.allFinite()) return Status::Error("non-finite force");
-  command_box_.back().force_n = force_n;   // the Inverse3 renders no torque
+  command_box_.back().force_n = force_n;   // the Inverse3 renders no torque; zero while force is off
   command_box_.publish();
   const int link = link_.load(std::memory_order_acquire);
   return link == kUp ? Status::Ok() : Status::Error(kLinkReason[link]);
@@ -457,6 +478,8 @@ Status Inverse3Device::write(const Vec3& force_n, const Vec3& torque_nm) noexcep
 void Inverse3Device::close() noexcept {
   if (closed_ || !io_) return;
   closed_ = true;
+  unregister_emergency_stop(this);
+  force_on_.store(false, std::memory_order_release);
   Io& io = *io_;
   io.closing.store(true, std::memory_order_release);
   if (link_.load(std::memory_order_acquire) != kConnecting) {

@@ -21,6 +21,7 @@
 #include <thread>
 
 #include "haptree/bus/latest_value.hpp"
+#include "haptree/device/axes.hpp"
 #include "haptree/device/device.hpp"
 
 namespace haptree::device {
@@ -29,8 +30,8 @@ struct Inverse3Params {
   std::string url = "ws://127.0.0.1:10001";
   std::string device_id;            // empty: the first Inverse3 the service reports
   std::string grip_id;              // empty: the first wireless Verse Grip, else the first wired one
-  // View axes from device axes: for the view's x, y, z, the device axis (signed) it reads. Default
-  // "x,z,-y": view x = device x (right), view y = device z (up), view z = -device y (towards the user).
+  // haptree's axes from Haply's (AxisMap): for haptree's x, y, z, the Haply axis (signed) it reads.
+  // Default "x,z,-y": x = Haply x (right), y = Haply z (up), z = -Haply y (towards the user).
   std::string axes = "x,z,-y";
   Vec3 origin_m = Vec3::Zero();     // device point (device axes, m) that becomes the view's origin
   double rate_hz = 1000;            // commands per second (the service answers each one)
@@ -39,10 +40,6 @@ struct Inverse3Params {
   std::string force_key = "vector"; // set_cursor_force field written: "vector" (3.1+) or "values" (older)
   double max_abs_m = 1.0;           // a cursor position farther than this (device frame) is refused
 };
-
-// Parses an axes string ("x,z,-y": three signed device axes, a permutation) into the matrix taking
-// device vectors to view vectors (orthonormal, det +1 or -1). Throws std::invalid_argument naming it.
-Mat3 parse_axes(const std::string& axes);
 
 // What the I/O thread hands the haptic loop: the newest valid state, already in view axes.
 struct Inverse3Sample {
@@ -63,9 +60,15 @@ class Inverse3Device final : public Device {
   Inverse3Device(const DeviceSpec& spec, const Inverse3Params& p);
   ~Inverse3Device() override;
   const DeviceSpec& spec() const noexcept override { return spec_; }
-  // Connects, reads the inventory, picks the device and starts the I/O thread. A failure says what is
-  // wrong in one line (service not running, no Inverse3, unknown device_id).
+  // Connects, reads the inventory, picks the device and starts the I/O thread (force output off: zero
+  // force every tick). A failure says what is wrong in one line (service not running, no Inverse3,
+  // unknown device_id).
   Status open() override;
+  // Model and serial (the service's device_id), buttons and orientation of the grip; the service
+  // reports no force, stiffness or damping limits (NaN: the --device-model table is the fallback).
+  DeviceDescription describe() const override;
+  // Off: the I/O thread sends a zero force each tick whatever write() says.
+  Status enable_force(bool on) noexcept override;
   Status read(double time_s, DeviceReading& out) noexcept override;
   Status write(const Vec3& force_n, const Vec3& torque_nm) noexcept override;
   // Sends a zero force as the last command, closes the WebSocket and joins the I/O thread. Idempotent.
@@ -74,7 +77,7 @@ class Inverse3Device final : public Device {
   // From the inventory (valid after open()).
   const std::string& device_id() const noexcept { return device_id_; }
   const std::string& grip_id() const noexcept { return grip_id_; }
-  const std::string& description() const noexcept { return description_; }   // model, firmware, handedness
+  const std::string& description() const noexcept { return description_; }   // model, version, ids
   int64_t replies() const noexcept { return replies_.load(std::memory_order_relaxed); }
   int64_t malformed() const noexcept { return malformed_.load(std::memory_order_relaxed); }
 
@@ -84,12 +87,14 @@ class Inverse3Device final : public Device {
   DeviceSpec spec_;
   Inverse3Params p_;
   Mat3 axes_;                       // view <- device
-  std::string device_id_, grip_id_, description_, open_error_;
+  std::string device_id_, grip_id_, model_, description_, open_error_;
   std::unique_ptr<Io> io_;
   std::thread thread_;
   bus::LatestValue<Inverse3Sample> state_box_;      // I/O thread -> read()
   bus::LatestValue<Inverse3Command> command_box_;   // write() -> I/O thread
   std::atomic<int> link_{0};        // LinkState in inverse3.cpp
+  std::atomic<bool> force_on_{false};
+  int grip_buttons_ = 0;            // 3 wireless (a, b, c), 1 wired, 0 no grip
   std::atomic<int64_t> replies_{0}, malformed_{0};
   int64_t seq_ = 0;
   bool closed_ = false;

@@ -1,6 +1,8 @@
 // Devices by name, so real SDKs plug in without the processes knowing them:
 //   haptree::device::register_device("phantom", [](const DeviceConfig& c) { return std::make_unique<...>(c); });
-// Built in: "scripted", "virtual_hand", "replay", "browser", "inverse3" (options below).
+// Built in: "scripted", "virtual_hand", "replay", "browser", and the real devices "openhaptics",
+// "forcedimension" (vendor libraries loaded at run time) and "inverse3" (the Haply Inverse Service over
+// a local WebSocket); options below; docs/devices.md.
 #pragma once
 
 #include <functional>
@@ -28,6 +30,9 @@ struct DeviceConfig {
   //    rate_hz (default the bridge's rate), timeout_s, connect_timeout_s, force_key (vector|values)
   //  browser (the mouse in the viewer's page, needs bus): fallback (scripted|none, default none; the
   //    scripted options above apply to it), timeout_s, smoothing_s, switch_s
+  //  real devices: axes (vendor axes -> haptree's, AxisMap; each family documents its default), lib
+  //    (the vendor library's path or name), and openhaptics: name (device name; default device),
+  //    forcedimension: id (device index; default the first device)
   std::map<std::string, std::string> options;
   // Set by device_bridge for devices fed from the bus (browser): the bus, this device's id, the suffix.
   bus::Bus* bus = nullptr;
