@@ -16,7 +16,7 @@ PKGS=(
   python3-dev pybind11-dev python3-pybind11 python3-numpy   # the haptree Python module (python/)
   python3-pytest python3-pandas                 # its tests (CTest label python) and the log reader's frames
   openjdk-17-jdk-headless liblcm-java           # haptree_lcmtypes.jar for lcm-spy (java/)
-  libwebsocketpp-dev libasio-dev                # viewer: HTTP + WebSocket (standalone asio)
+  libwebsocketpp-dev libasio-dev                # viewer (HTTP + WebSocket) and the inverse3 device (standalone asio)
   chromium python3-websocket                    # viewer browser test: headless chromium over CDP
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
