@@ -29,7 +29,7 @@ double mono_s() noexcept {
 }
 
 // link_ values: 0 connecting, 1 up, then the reason read()/write() report (static strings).
-enum Link : int { kConnecting = 0, kUp = 1, kClosed, kNoReply, kRemoteClosed, kNoValidState, kSocketError };
+enum Link : int { kConnecting = 0, kUp = 1, kClosed, kNoReply, kRemoteClosed, kNoValidState, kSocketError, kStale };
 const char* const kLinkReason[] = {
     "inverse3: not connected",
     "",
@@ -38,6 +38,8 @@ const char* const kLinkReason[] = {
     "inverse3: the Inverse Service closed the connection (link lost)",
     "inverse3: no valid Inverse3 state within timeout_s (malformed replies, or the device left the service's list)",
     "inverse3: WebSocket error (link lost)",
+    "inverse3: no state from the Inverse Service within timeout_s (no reply, malformed replies, or the device left "
+    "the service's list)",
 };
 
 // A vec3 as the service writes it: {x,y,z}, or wrapped as {"vector":{x,y,z}} (current services) or
@@ -455,7 +457,7 @@ Status Inverse3Device::read(double time_s, DeviceReading& out) noexcept {
   if (link != kUp) return Status::Error(kLinkReason[link]);
   const Inverse3Sample& s = state_box_.front();
   if (state_box_.front_seq() == 0) return Status::Error(kLinkReason[kConnecting]);
-  if (mono_s() - s.received_s > p_.timeout_s) return Status::Error(kLinkReason[kNoValidState]);
+  if (mono_s() - s.received_s > p_.timeout_s) return Status::Error(kLinkReason[kStale]);
   out.time_s = time_s;
   out.seq = ++seq_;
   out.position_m = s.position_m;

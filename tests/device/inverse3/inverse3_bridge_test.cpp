@@ -16,6 +16,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "haptree/bus/bus.hpp"
@@ -173,7 +174,7 @@ double max_norm(const std::vector<testing::ForceRecord>& log) {
   return m;
 }
 
-TEST(Inverse3Bridge, PosesInMetresViewAxesGripButtonsZeroForceLast) {
+TEST(Inverse3Bridge, PosesInMetresForcesInNewtonsWithinTheMaxZeroLast) {
   FakeInverseOptions o;
   o.rest_m = Vec3(0.03, -0.12, 0.15);
   o.buttons = {{0.0, 0.5, 1}};
@@ -192,17 +193,111 @@ TEST(Inverse3Bridge, PosesInMetresViewAxesGripButtonsZeroForceLast) {
   for (const auto& st : s.coupler.all()) grab_seen |= (st.buttons & 1) != 0;
   EXPECT_TRUE(grab_seen);
 
-  // No force is rendered without FEEDBACK; SIGTERM ends the bridge with exit 0 and a zero force last.
+  // 1 N up in the view: device +z; the fake's 200 N/m spring settles 5 mm up, seen in DEVICE_STATE.
+  // (The checks take the extreme over a window: a test thread stalled past the bridge's 10 ms FEEDBACK
+  // watchdog on a loaded machine ramps the force down for a moment, by design.)
+  s.coupler.set_force(Vec3(0, 1, 0));
+  s.coupler.start_feedback();
+  sleep_s(1.0);
+  auto log = s.svc.forces();
+  const size_t n_before = before.size();
+  double fz_max = 0, off_axis = 0;
+  for (size_t i = n_before; i < log.size(); ++i) {
+    fz_max = std::max(fz_max, log[i].force_n.z());
+    off_axis = std::max({off_axis, std::abs(log[i].force_n.x()), std::abs(log[i].force_n.y())});
+  }
+  EXPECT_EQ(fz_max, 1.0) << "1 N up in the view is 1 N along the Inverse3's +z";
+  EXPECT_EQ(off_axis, 0.0);
+  double y_max = 0;
+  const auto states = s.coupler.all();
+  for (size_t i = states.size() > 300 ? states.size() - 300 : 0; i < states.size(); ++i) {
+    y_max = std::max(y_max, states[i].position_m[1]);
+    EXPECT_NEAR(states[i].position_m[0], 0.03, 1e-6);
+    EXPECT_NEAR(states[i].position_m[2], 0.12, 1e-6);
+  }
+  EXPECT_NEAR(y_max, 0.15 + 1.0 / 200, 3e-4) << "the spring's equilibrium, 5 mm up";
+  EXPECT_EQ(s.coupler.last().buttons & 1, 0) << "the schedule released the grab button at 0.5 s";
+
+  // 5 N towards the user: clamped to the bridge's --max-force-n 2, along device -y.
+  s.coupler.set_force(Vec3(0, 0, 5));
+  sleep_s(0.5);
+  const size_t n_up = log.size();
+  log = s.svc.forces();
+  double fy_min = 0;
+  for (size_t i = n_up; i < log.size(); ++i) fy_min = std::min(fy_min, log[i].force_n.y());
+  EXPECT_NEAR(fy_min, -2.0, 1e-9) << "towards the user is the Inverse3's -y; clamped at 2 N";
+  EXPECT_LE(max_norm(log), 2.0 + 1e-9);
+
+  // SIGTERM: the bridge ramps down and closes; the service's last command is a zero force.
   int rc = -1;
   ::kill(s.pid, SIGTERM);
   ASSERT_TRUE(exited_within(s.pid, 5.0, &rc)) << slurp(s.log);
   s.pid = -1;
   EXPECT_EQ(rc, 0) << slurp(s.log);
-  const auto log = s.svc.forces();
+  log = s.svc.forces();
   EXPECT_EQ(log.back().force_n, Vec3::Zero());
   EXPECT_TRUE(log.back().applied);
   sleep_s(0.1);
   EXPECT_EQ(s.svc.open_connections(), 0) << "the bridge closed its WebSocket";
+}
+
+// A link that fails while a force is rendered: the bridge's fail-safe ends it (exit 3) naming the cause;
+// where the socket is still open the last command the service gets is a zero force, and nothing after.
+TEST(Inverse3Bridge, CommLossEndsWithZeroForceAndExit3) {
+  const std::pair<FakeFault, const char*> cases[] = {
+      {FakeFault::kStopReplying, "device read failed: inverse3: no "},   // no reply / no state: whichever is first
+      {FakeFault::kMalformed, "device read failed: inverse3: no "},
+      {FakeFault::kClose, "closed the connection"}};
+  for (const auto& c : cases) {
+    FakeInverseOptions o;
+    o.fault = c.first;
+    o.fault_after_s = 1.0;
+    Session s(o);
+    ASSERT_GT(s.pid, 0);
+    s.coupler.set_force(Vec3(1, 0, 0));
+    s.coupler.start_feedback();
+    int rc = -1;
+    ASSERT_TRUE(exited_within(s.pid, 8.0, &rc)) << c.second << "\n" << slurp(s.log);
+    s.pid = -1;
+    EXPECT_EQ(rc, 3) << slurp(s.log);
+    const std::string out = slurp(s.log);
+    EXPECT_NE(out.find(c.second), std::string::npos) << out;
+    const auto log = s.svc.forces();
+    ASSERT_GT(log.size(), 50u) << out;
+    double f_before = 0;
+    for (const auto& r : log)
+      if (r.t_s < 0.95) f_before = std::max(f_before, r.force_n.norm());
+    EXPECT_NEAR(f_before, 1.0, 1e-9) << "a force was rendered before the fault";
+    if (c.first != FakeFault::kClose) {
+      EXPECT_EQ(log.back().force_n, Vec3::Zero()) << c.second;
+      EXPECT_TRUE(log.back().applied);
+    }
+    sleep_s(0.2);
+    EXPECT_EQ(s.svc.forces().size(), log.size()) << "nothing sent after the loss";
+  }
+}
+
+// --probe: model, serial, limits (none reported), position and buttons, force output off throughout.
+TEST(Inverse3Bridge, Probe) {
+  FakeInverseOptions o;
+  o.rest_m = Vec3(0.03, -0.12, 0.15);
+  o.buttons = {{0.0, 10.0, 2}};
+  FakeInverseService svc(o);
+  const std::string log = ::testing::TempDir() + "inverse3_bridge_probe.log";
+  const pid_t p = testing::spawn_logged(
+      {HAPTREE_DEVICE_BRIDGE, "--kind", "inverse3", "--probe", "--option", "url=" + svc.url()}, log);
+  ASSERT_GT(p, 0);
+  int rc = -1;
+  ASSERT_TRUE(exited_within(p, 10.0, &rc));
+  const std::string out = slurp(log);
+  EXPECT_EQ(rc, 0) << out;
+  for (const char* line : {"kind: inverse3", "model: Haply Inverse3 (version 7.4, right-handed)", "serial: 049D",
+                           "max force: not reported", "axes: x,z,-y", "position: 0.030000 0.150000 0.120000 m",
+                           "buttons: 2 (grab up, clutch down)"})
+    EXPECT_NE(out.find(line), std::string::npos) << line << "\n" << out;
+  const auto forces = svc.forces();
+  ASSERT_FALSE(forces.empty());
+  EXPECT_EQ(max_norm(forces), 0.0);
 }
 
 TEST(Inverse3Bridge, ServiceNotRunningOneLineExit1) {
@@ -224,6 +319,26 @@ TEST(Inverse3Bridge, ServiceNotRunningOneLineExit1) {
   }
   EXPECT_EQ(about, 1) << out;
   EXPECT_EQ(lines, 1) << out;
+}
+
+TEST(Inverse3Bridge, OlderServiceWithForceKeyValues) {
+  FakeInverseOptions o;
+  o.old_dialect = true;
+  Session s(o, {"--option", "force_key=values"});
+  ASSERT_GT(s.pid, 0);
+  ASSERT_TRUE(s.coupler.wait_states(100, 5.0)) << slurp(s.log);
+  s.coupler.set_force(Vec3(0.5, 0, 0));
+  s.coupler.start_feedback();
+  sleep_s(0.5);
+  const auto log = s.svc.forces();
+  double fx_max = 0;
+  bool all_applied = true;
+  for (const auto& r : log) {
+    fx_max = std::max(fx_max, r.force_n.x());
+    all_applied &= r.applied;
+  }
+  EXPECT_TRUE(all_applied) << "every command in the field an older service reads";
+  EXPECT_EQ(fx_max, 0.5);
 }
 
 }  // namespace
