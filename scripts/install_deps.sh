@@ -21,6 +21,7 @@ PKGS=(
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
+  qemu-user                                     # default binaries run as an older CPU (tests/isa)
 )
 missing=()
 for p in "${PKGS[@]}"; do
