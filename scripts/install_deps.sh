@@ -22,6 +22,7 @@ PKGS=(
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
   qemu-user                                     # default binaries run as an older CPU (tests/isa)
+  doxygen                                       # API reference (CMake target docs; CTest label docs)
 )
 missing=()
 for p in "${PKGS[@]}"; do
