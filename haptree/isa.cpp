@@ -11,10 +11,23 @@ namespace {
 bool cpu_has(Level l) {
 #if HAPTREE_ISA_X86
   __builtin_cpu_init();
-  switch (l) {   // libgcc checks the OS's XSAVE state for AVX / AVX-512 too
+  // The runtime (libgcc / compiler-rt) checks the OS's XSAVE state for AVX / AVX-512 too. GCC knows
+  // the levels by name; clang (before 18) only the features: the ones that tell a level apart (every
+  // CPU with AVX2, FMA and BMI2 has the rest of x86-64-v3: LZCNT, MOVBE, F16C).
+  switch (l) {
     case Level::generic: return true;
+#if defined(__clang__)
+    case Level::avx2:
+      return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") && __builtin_cpu_supports("bmi") &&
+             __builtin_cpu_supports("bmi2");
+    case Level::avx512:
+      return cpu_has(Level::avx2) && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+             __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq") &&
+             __builtin_cpu_supports("avx512cd");
+#else
     case Level::avx2: return __builtin_cpu_supports("x86-64-v3");
     case Level::avx512: return __builtin_cpu_supports("x86-64-v4");
+#endif
   }
   return false;
 #else
