@@ -27,6 +27,7 @@ TESTS=(
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   help2man dpkg-dev                             # man pages and .debs (cpack; scripts/test_install.sh)
+  doxygen                                       # API reference (CMake target docs; CTest label docs)
 )
 PKGS=("${BUILD_RUN[@]}")
 case "${1:-}" in

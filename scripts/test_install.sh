@@ -27,7 +27,7 @@ step "cmake --install into $PREFIX"
 cmake --install "$BUILD" --prefix "$PREFIX" > "$WORK/install.log" || { cat "$WORK/install.log"; fail "cmake --install"; }
 for f in bin/sim_server bin/coupler bin/device_bridge bin/viewer bin/imd_bridge bin/haptree_run bin/haptree-fd \
          bin/replay_coupling bin/trajectory_from_log include/haptree/dca.hpp include/haptree/io/urdf.hpp \
-         include/haptree/lcmt_feedback.hpp share/haptree/lcmtypes/feedback.lcm \
+         include/haptree/lcmt_feedback.hpp share/haptree/lcmtypes/lcmt_feedback.lcm \
          share/haptree/data/molecules/ff14sb.dat share/haptree/viewer/web/index.html \
          share/haptree/viewer/web/vendor/ngl.js share/haptree/models/arm.urdf; do
   [ -e "$PREFIX/$f" ] || fail "not installed: $f"
