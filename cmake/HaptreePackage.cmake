@@ -25,7 +25,7 @@ install(DIRECTORY ${PROJECT_SOURCE_DIR}/haptree/ DESTINATION ${CMAKE_INSTALL_INC
 # Data: molecules and force-field tables (found by haptree::molecule::data_dir()), sample URDF models,
 # the viewer's page (NGL vendored), the LCM schemas (lcmtypes/CMakeLists.txt), lcm-spy's jar if built.
 install(DIRECTORY ${PROJECT_SOURCE_DIR}/data/ DESTINATION ${HAPTREE_DATA_ROOT}/data COMPONENT runtime
-        PATTERN oracle EXCLUDE)   # OpenMM reference numbers: test data
+        PATTERN oracle EXCLUDE PATTERN tools EXCLUDE)   # OpenMM reference numbers and the scripts that made them
 install(FILES ${PROJECT_SOURCE_DIR}/tests/data/urdf/arm.urdf ${PROJECT_SOURCE_DIR}/tests/data/urdf/floating.urdf
         DESTINATION ${HAPTREE_DATA_ROOT}/models COMPONENT runtime)
 install(DIRECTORY ${PROJECT_SOURCE_DIR}/viewer/web/ DESTINATION ${HAPTREE_DATA_ROOT}/viewer/web
