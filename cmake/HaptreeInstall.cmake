@@ -9,20 +9,31 @@ else()
   set(HAPTREE_SOVERSION ${PROJECT_VERSION_MAJOR})
 endif()
 
-# haptree_export_library(<target> <name>): <target> (a static library) is compiled position-independent,
-# gets a shared twin <target>_shared built from the same object files (no second compilation), and both
-# are installed and exported: haptree::<name> (shared) and haptree::<name>_static. Call it at the end of
+# Shared libraries and man pages for the installed package and the .debs. Off by default for now:
+# it compiles the libraries position-independent (every library object once more).
+option(HAPTREE_PACKAGE "Build what the installed package adds: shared libraries (PIC) and man pages" OFF)
+
+# haptree_export_library(<target> <name>): <target> (a static library) is installed and exported as
+# haptree::<name>_static; with HAPTREE_PACKAGE it is compiled position-independent and gets a shared
+# twin <target>_shared built from the same object files (no second compilation), haptree::<name>. Call it at the end of
 # the directory that defines <target>, after its target_link_libraries. Its include directories must be
 # given as $<BUILD_INTERFACE:...> (the installed ones are <prefix>/include).
 function(haptree_export_library target name)
   if(HAPTREE_FUZZ)
     return()   # the sanitizer tree builds fuzz targets only
   endif()
-  set_target_properties(${target} PROPERTIES POSITION_INDEPENDENT_CODE ON EXPORT_NAME ${name}_static)
-  # PIC, but calls inside the library are bound to it (as in the executables' PIE code): same speed.
-  target_compile_options(${target} PRIVATE $<$<CXX_COMPILER_ID:GNU,Clang>:-fno-semantic-interposition>)
+  set_target_properties(${target} PROPERTIES EXPORT_NAME ${name}_static)
   target_compile_features(${target} PUBLIC cxx_std_17)
   target_include_directories(${target} INTERFACE $<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}>)
+  set_property(GLOBAL APPEND PROPERTY HAPTREE_EXPORTED_LIBS ${target})
+  install(TARGETS ${target} EXPORT haptreeTargets
+          ARCHIVE DESTINATION ${CMAKE_INSTALL_LIBDIR} COMPONENT dev)
+  if(NOT HAPTREE_PACKAGE)
+    return()
+  endif()
+  set_target_properties(${target} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+  # PIC, but calls inside the library are bound to it (as in the executables' PIE code): same speed.
+  target_compile_options(${target} PRIVATE $<$<CXX_COMPILER_ID:GNU,Clang>:-fno-semantic-interposition>)
 
   # Object files the static library takes from elsewhere (an object library's $<TARGET_OBJECTS:...>)
   # are part of the shared one too.
@@ -68,9 +79,6 @@ function(haptree_export_library target name)
     set(${kind} ${mapped})
   endforeach()
   target_link_libraries(${target}_shared PUBLIC ${pub} PRIVATE ${priv})
-  set_property(GLOBAL APPEND PROPERTY HAPTREE_EXPORTED_LIBS ${target})
-  install(TARGETS ${target} ${target}_shared EXPORT haptreeTargets
-          ARCHIVE DESTINATION ${CMAKE_INSTALL_LIBDIR} COMPONENT dev
-          LIBRARY DESTINATION ${CMAKE_INSTALL_LIBDIR} COMPONENT runtime NAMELINK_COMPONENT dev
-          RUNTIME DESTINATION ${CMAKE_INSTALL_BINDIR} COMPONENT runtime)
+  install(TARGETS ${target}_shared EXPORT haptreeTargets
+          LIBRARY DESTINATION ${CMAKE_INSTALL_LIBDIR} COMPONENT runtime NAMELINK_COMPONENT dev)
 endfunction()

@@ -79,7 +79,11 @@ set(HAPTREE_EIGEN_ABI_DEFINITIONS EIGEN_MAX_STATIC_ALIGN_BYTES=${CMAKE_MATCH_1}
 message(STATUS "haptree: Eigen ABI of the libraries, carried to their users: ${HAPTREE_EIGEN_ABI_DEFINITIONS}")
 get_property(exported GLOBAL PROPERTY HAPTREE_EXPORTED_LIBS)
 foreach(lib ${exported})
-  foreach(t ${lib} ${lib}_shared)
+  set(twins ${lib})
+  if(TARGET ${lib}_shared)
+    list(APPEND twins ${lib}_shared)
+  endif()
+  foreach(t ${twins})
     foreach(d ${HAPTREE_EIGEN_ABI_DEFINITIONS})
       # Installed users only: the tree's own targets are compiled with the very flags probed.
       set_property(TARGET ${t} APPEND PROPERTY INTERFACE_COMPILE_DEFINITIONS "$<INSTALL_INTERFACE:${d}>")
@@ -134,7 +138,7 @@ install(FILES ${PROJECT_SOURCE_DIR}/packaging/systemd/example.conf DESTINATION $
 
 # Man pages from each program's --help (Debian's help2man), gzipped as Debian installs them.
 find_program(HAPTREE_HELP2MAN help2man)
-if(HAPTREE_HELP2MAN)
+if(HAPTREE_PACKAGE AND HAPTREE_HELP2MAN)
   set(man_pages)
   foreach(p ${installed_programs})
     get_target_property(out ${p} OUTPUT_NAME)
@@ -153,7 +157,7 @@ if(HAPTREE_HELP2MAN)
   add_custom_target(haptree_man ALL DEPENDS ${man_pages})
   install(FILES ${man_pages} DESTINATION ${CMAKE_INSTALL_MANDIR}/man1 COMPONENT runtime)
 else()
-  message(STATUS "man pages: help2man not found, not generated (scripts/install_deps.sh installs it)")
+  message(STATUS "man pages: not generated (needs -DHAPTREE_PACKAGE=ON and help2man)")
 endif()
 
 # Debian packages: `cpack -G DEB` in the build directory (run after the build) writes
@@ -204,7 +208,7 @@ else()
 endif()
 include(CPack)
 
-if(HAPTREE_BUILD_TESTS)
+if(HAPTREE_BUILD_TESTS AND HAPTREE_PACKAGE)
   # Install into a temporary prefix, build examples/consumer against it (-O2, no -march), run the
   # installed launcher with the source tree hidden, build and check the .debs (scripts/test_install.sh).
   add_test(NAME install_package COMMAND bash ${PROJECT_SOURCE_DIR}/scripts/test_install.sh ${PROJECT_BINARY_DIR})
