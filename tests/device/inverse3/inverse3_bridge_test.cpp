@@ -71,6 +71,13 @@ bool exited_within(pid_t p, double seconds, int* rc) {
   return false;
 }
 
+// The fake reads the bridge's last bytes on its own thread: after the bridge has exited, wait (up to 2 s)
+// until its WebSocket is closed there, which comes after the last command on the same socket.
+void wait_closed(const FakeInverseService& svc) {
+  const auto end = Clock::now() + std::chrono::seconds(2);
+  while (Clock::now() < end && svc.open_connections() > 0) sleep_s(0.005);
+}
+
 // The coupler's side of one device: DEVICE_STATE in, FEEDBACK out at 1 kHz with a settable force.
 struct FakeCoupler {
   explicit FakeCoupler(const std::string& url, const std::string& suffix)
@@ -234,6 +241,7 @@ TEST(Inverse3Bridge, PosesInMetresForcesInNewtonsWithinTheMaxZeroLast) {
   ASSERT_TRUE(exited_within(s.pid, 5.0, &rc)) << slurp(s.log);
   s.pid = -1;
   EXPECT_EQ(rc, 0) << slurp(s.log);
+  wait_closed(s.svc);
   log = s.svc.forces();
   EXPECT_EQ(log.back().force_n, Vec3::Zero());
   EXPECT_TRUE(log.back().applied);
@@ -262,6 +270,7 @@ TEST(Inverse3Bridge, CommLossEndsWithZeroForceAndExit3) {
     EXPECT_EQ(rc, 3) << slurp(s.log);
     const std::string out = slurp(s.log);
     EXPECT_NE(out.find(c.second), std::string::npos) << out;
+    wait_closed(s.svc);
     const auto log = s.svc.forces();
     ASSERT_GT(log.size(), 50u) << out;
     double f_before = 0;
@@ -291,6 +300,7 @@ TEST(Inverse3Bridge, Probe) {
   ASSERT_TRUE(exited_within(p, 10.0, &rc));
   const std::string out = slurp(log);
   EXPECT_EQ(rc, 0) << out;
+  wait_closed(svc);
   for (const char* line : {"kind: inverse3", "model: Haply Inverse3 (version 7.4, right-handed)", "serial: 049D",
                            "max force: not reported", "axes: x,z,-y", "position: 0.030000 0.150000 0.120000 m",
                            "buttons: 2 (grab up, clutch down)"})
