@@ -24,10 +24,12 @@ int main(int argc, char** argv) {
   app.add_option("--device-kind", o.kind,
                  "the device, by name: scripted | virtual_hand | replay | browser (the mouse in the viewer's page; "
                  "--device-option fallback=scripted keeps the script until the page's first press) | openhaptics (3D "
-                 "Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon); docs/devices.md")
+                 "Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon) | inverse3 "
+                 "(Haply Inverse3 through the Haply Inverse Service); docs/devices.md")
       ->capture_default_str();
   app.add_option("--device-option", kv, "device option key=value, repeated (e.g. pull_distance_m=0.03, log=FILE; real "
-                                        "devices: lib=PATH, axes=y,z,x, openhaptics name=NAME, forcedimension id=N)");
+                                        "devices: lib=PATH, axes=y,z,x, openhaptics name=NAME, forcedimension id=N, "
+                                        "inverse3 url=ws://127.0.0.1:10001 device_id=ID)");
   bool probe = false;
   app.add_flag("--probe", probe, "open the device, print its model, serial, limits, position and buttons, close it "
                                  "and exit (0; 1 if it cannot be opened or read). Force output stays off");
