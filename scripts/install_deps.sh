@@ -20,7 +20,8 @@ PKGS=(
   chromium python3-websocket                    # viewer browser test: headless chromium over CDP
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
-  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
+  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*), viewer tokens
+  libssl-dev openssl                            # viewer over https/wss; openssl s_client in its TLS test
 )
 missing=()
 for p in "${PKGS[@]}"; do

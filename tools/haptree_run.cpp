@@ -38,6 +38,8 @@ struct ViewerLaunch {
   int port = 8080;              // 0 = no viewer
   std::string bind = "127.0.0.1";
   int users = 2;                // tabs that can pull at once (couplers are started for them)
+  std::string token_file, watch_token_file, tls_cert, tls_key;
+  bool no_token = false;
 };
 std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const haptree::SimServerOptions& so,
                                               const ViewerLaunch& vl, int users) {
@@ -49,8 +51,14 @@ std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const hapt
   vo.n = so.n;
   vo.urdf = so.urdf;
   vo.users = users;
+  vo.token_file = vl.token_file;
+  vo.watch_token_file = vl.watch_token_file;
+  vo.no_token = vl.no_token;
+  vo.tls_cert = vl.tls_cert;
+  vo.tls_key = vl.tls_key;
   auto v = std::make_unique<haptree::Viewer>(bus, vo);
   std::printf("viewer: open %s\n", v->url().c_str());
+  if (!v->watch_url().empty()) std::printf("viewer: watch only %s\n", v->watch_url().c_str());
   std::fflush(stdout);
   return v;
 }
@@ -92,6 +100,16 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0, 65535))->capture_default_str();
   app.add_option("--viewer-bind", vl.bind, "address the viewer listens on (127.0.0.1: this machine only)")
       ->capture_default_str();
+  app.add_option("--viewer-token-file", vl.token_file,
+                 "file whose first line is the viewer's token that may pull (default: a random token, printed in the URL)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--viewer-watch-token-file", vl.watch_token_file, "file whose first line is a watch-only viewer token")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--viewer-no-token", vl.no_token,
+               "viewer without a token (only with a loopback --viewer-bind: anyone on this machine can pull)");
+  app.add_option("--viewer-tls-cert", vl.tls_cert, "PEM certificate: the viewer over https:// and wss:// (with --viewer-tls-key)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--viewer-tls-key", vl.tls_key, "PEM private key of --viewer-tls-cert")->check(CLI::ExistingFile);
   app.add_option("--viewer-users", vl.users,
                  "users a page can be (couplers are started for max(--users, this); the ones past --users have "
                  "no script)")->check(CLI::Range(1, 8))->capture_default_str();
@@ -187,6 +205,11 @@ int main(int argc, char** argv) {
     se.mirror_rate_hz = mirror_rate_hz;
     se.viewer_port = vl.port;
     se.viewer_bind = vl.bind;
+    se.viewer_token_file = vl.token_file;
+    se.viewer_watch_token_file = vl.watch_token_file;
+    se.viewer_tls_cert = vl.tls_cert;
+    se.viewer_tls_key = vl.tls_key;
+    se.viewer_no_token = vl.no_token;
     se.scripted_users = vl.port > 0 ? scripted_users : -1;
     return haptree::tools::run_processes(po, se, g_stop);
   }

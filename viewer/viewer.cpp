@@ -4,17 +4,22 @@
 #define _WEBSOCKETPP_CPP11_STL_
 #include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
+#include <sodium.h>
+#include <websocketpp/config/asio.hpp>
 #include <websocketpp/config/asio_no_tls.hpp>
 #include <websocketpp/server.hpp>
 
 #include <algorithm>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <array>
 #include <map>
 #include <mutex>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <unistd.h>
@@ -41,6 +46,7 @@ namespace haptree {
 
 using json = nlohmann::json;
 using WsServer = websocketpp::server<websocketpp::config::asio>;
+using WssServer = websocketpp::server<websocketpp::config::asio_tls>;
 using Hdl = websocketpp::connection_hdl;
 using Clock = std::chrono::steady_clock;
 
@@ -106,9 +112,30 @@ struct UserSlot {
   Vec3 track_key = Vec3::Constant(std::nan("")), track_local = Vec3::Zero();
 };
 
+enum class Role { kNone, kWatch, kPull };
+enum class Refusal { kNoToken, kWrongToken, kForeignOrigin, kWatchPull };
+const char* refusal_text(Refusal r) {
+  switch (r) {
+    case Refusal::kNoToken: return "no token (open the URL the viewer printed, with ?token=)";
+    case Refusal::kWrongToken: return "wrong token";
+    case Refusal::kForeignOrigin: return "WebSocket from a page of another origin";
+    case Refusal::kWatchPull: return "a watch-only token tried to pull";
+  }
+  return "";
+}
+
+using TokenHash = std::array<unsigned char, crypto_generichash_BYTES>;
+TokenHash hash_token(const std::string& t) {
+  TokenHash h{};
+  crypto_generichash(h.data(), h.size(), reinterpret_cast<const unsigned char*>(t.data()), t.size(), nullptr, 0);
+  return h;
+}
+
 struct Client {
   int64_t id = 0;
-  int user = -1;            // -1: spectator (no free user)
+  Role role = Role::kPull;
+  int user = -1;            // -1: spectator (watch token, or no free user)
+  std::string address;
   bool down = false;
   int body = 0;
   Vec3 target_scene = Vec3::Zero();
@@ -139,8 +166,21 @@ struct Viewer::Impl {
   double sim_time = 0, step_ms = 0, neglected = 0, sim_rate = 0, sim_resets = 0;
   int active_dofs = 0;
   std::vector<UserSlot> users;
-  // server thread
-  WsServer srv;
+  // access: tokens compared as fixed-size hashes in constant time (sodium_memcmp)
+  bool open_access = false, tls = false;
+  std::string pull_token, watch_token, cookie_name;
+  TokenHash pull_hash{}, watch_hash{};
+  std::array<std::atomic<int64_t>, 4> refused{};
+  std::set<std::pair<std::string, int>> refusals_logged;   // (client address, reason): logged once
+  // server thread: one of the two servers (plain or TLS), the same handlers on either
+  std::unique_ptr<WsServer> plain;
+  std::unique_ptr<WssServer> secure;
+  std::shared_ptr<asio::ssl::context> tls_context;
+  template <class F>
+  void net(F&& f) {
+    if (secure) f(*secure);
+    else f(*plain);
+  }
   std::unique_ptr<asio::steady_timer> timer;
   std::map<Hdl, Client, std::owner_less<Hdl>> clients;
   int64_t next_client = 1, pointer_seq = 0;
@@ -165,13 +205,26 @@ struct Viewer::Impl {
 
   void load_scene();
   void subscribe();
+  void setup_access();
   void start_server();
+  template <class S>
+  void start_on(S& srv);
   Vec3 to_disp(const Vec3& x) const { return (x - disp_center) * disp_scale; }
   Vec3 from_disp(const Vec3& p) const { return p / disp_scale + disp_center; }
-  void on_http(Hdl h);
-  void on_open(Hdl h);
+  Role role_of(const std::string& token) const;
+  void refuse(Refusal r, const std::string& who, const std::string& what);
+  // The role a request's token gives (query ?token= first, else the cookie); kNone is counted and logged
+  // when count is true. from_query: the token came in the URL (the page then sets the cookie).
+  template <class Con>
+  Role authorize(Con& con, bool count, bool* from_query = nullptr);
+  template <class S>
+  void on_http(S& srv, Hdl h);
+  template <class S>
+  bool on_validate(S& srv, Hdl h);
+  template <class S>
+  void on_open(S& srv, Hdl h);
   void on_close(Hdl h);
-  void on_message(Hdl h, WsServer::message_ptr msg);
+  void on_message(Hdl h, const std::string& payload);
   void publish_pointer(const Client& c, bool button);
   void tick();
   void schedule();
@@ -357,25 +410,133 @@ void Viewer::Impl::subscribe() {
   }));
 }
 
+std::string random_viewer_token() {
+  if (sodium_init() < 0) throw std::runtime_error("viewer: libsodium failed to initialise");
+  unsigned char b[24];
+  randombytes_buf(b, sizeof b);
+  char hex[2 * sizeof b + 1];
+  sodium_bin2hex(hex, sizeof hex, b, sizeof b);
+  return hex;
+}
+
+std::string read_viewer_token_file(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw std::runtime_error("viewer: cannot read the token file " + path);
+  std::string line;
+  std::getline(in, line);
+  const size_t b = line.find_first_not_of(" \t\r\n");
+  const size_t e = line.find_last_not_of(" \t\r\n");
+  line = b == std::string::npos ? "" : line.substr(b, e - b + 1);
+  if (line.size() < 16 || line.size() > 256)
+    throw std::runtime_error("viewer: the token in " + path + " must be 16 to 256 characters on its first line");
+  for (const char ch : line)
+    if (!(std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '_' || ch == '.' || ch == '~'))
+      throw std::runtime_error("viewer: the token in " + path + " may hold only letters, digits and -_.~");
+  return line;
+}
+
+void Viewer::Impl::setup_access() {
+  if (sodium_init() < 0) throw std::runtime_error("viewer: libsodium failed to initialise");
+  asio::error_code aec;
+  const asio::ip::address addr = asio::ip::make_address(opt.bind, aec);
+  if (aec) throw std::runtime_error("viewer: --bind '" + opt.bind + "' is not an IP address");
+  open_access = opt.no_token;
+  if (open_access && !addr.is_loopback())
+    throw std::runtime_error("viewer: binding " + opt.bind + " (off this machine) needs a token: drop the no-token option");
+  if (open_access && !(opt.token.empty() && opt.token_file.empty() && opt.watch_token_file.empty()))
+    throw std::runtime_error("viewer: no-token together with a token or token file");
+  if (!open_access) {
+    pull_token = !opt.token.empty() ? opt.token
+                 : !opt.token_file.empty() ? read_viewer_token_file(opt.token_file) : random_viewer_token();
+    pull_hash = hash_token(pull_token);
+    if (!opt.watch_token_file.empty()) {
+      watch_token = read_viewer_token_file(opt.watch_token_file);
+      if (watch_token == pull_token) throw std::runtime_error("viewer: the watch token is the pull token");
+      watch_hash = hash_token(watch_token);
+    }
+  }
+  if (opt.tls_cert.empty() != opt.tls_key.empty())
+    throw std::runtime_error("viewer: TLS needs both a certificate and a key file");
+  tls = !opt.tls_cert.empty();
+  if (tls) {
+    tls_context = std::make_shared<asio::ssl::context>(asio::ssl::context::tls_server);
+    tls_context->set_options(asio::ssl::context::default_workarounds | asio::ssl::context::no_sslv2 |
+                             asio::ssl::context::no_sslv3 | asio::ssl::context::no_tlsv1 |
+                             asio::ssl::context::no_tlsv1_1);
+    asio::error_code ec;
+    tls_context->use_certificate_chain_file(opt.tls_cert, ec);
+    if (ec) throw std::runtime_error("viewer: TLS certificate " + opt.tls_cert + ": " + ec.message());
+    tls_context->use_private_key_file(opt.tls_key, asio::ssl::context::pem, ec);
+    if (ec) throw std::runtime_error("viewer: TLS key " + opt.tls_key + ": " + ec.message());
+  }
+}
+
+Role Viewer::Impl::role_of(const std::string& token) const {
+  if (open_access) return Role::kPull;
+  if (token.empty() || token.size() > 256) return Role::kNone;
+  const TokenHash h = hash_token(token);
+  const bool pull = sodium_memcmp(h.data(), pull_hash.data(), h.size()) == 0;
+  const bool watch = !watch_token.empty() && sodium_memcmp(h.data(), watch_hash.data(), h.size()) == 0;
+  return pull ? Role::kPull : watch ? Role::kWatch : Role::kNone;
+}
+
+void Viewer::Impl::refuse(Refusal r, const std::string& who, const std::string& what) {
+  refused[static_cast<size_t>(r)].fetch_add(1, std::memory_order_relaxed);
+  if (refusals_logged.size() < 4096 && refusals_logged.insert({who, static_cast<int>(r)}).second)
+    spdlog::warn("viewer: refused {} ({}): {} (logged once per client and reason)", who, what, refusal_text(r));
+}
+
+template <class Con>
+Role Viewer::Impl::authorize(Con& con, bool count, bool* from_query) {
+  if (open_access) return Role::kPull;
+  std::string t = query_param(con->get_resource(), "token");
+  if (from_query) *from_query = !t.empty();
+  if (t.empty()) t = cookie_value(con->get_request_header("Cookie"), cookie_name);
+  const Role role = role_of(t);
+  if (role == Role::kNone && count) {
+    asio::error_code ec;
+    const auto ep = con->get_raw_socket().remote_endpoint(ec);
+    const std::string who = ec ? std::string("?") : ep.address().to_string();
+    const std::string res = con->get_resource().substr(0, con->get_resource().find('?')).substr(0, 64);
+    refuse(t.empty() ? Refusal::kNoToken : Refusal::kWrongToken, who, "GET " + res);
+  }
+  return role;
+}
+
 void Viewer::Impl::start_server() {
   const std::string dir = find_web_dir(opt.web_dir);
   index_html = read_file(dir + "/index.html");
   viewer_js = read_file(dir + "/viewer.js");
   ngl_js = read_file(dir + "/vendor/ngl.js");
+  if (tls) {
+    secure = std::make_unique<WssServer>();
+    secure->set_tls_init_handler([this](Hdl) { return tls_context; });
+  } else {
+    plain = std::make_unique<WsServer>();
+  }
+  net([&](auto& srv) { start_on(srv); });
+  cookie_name = "haptree_viewer_" + std::to_string(bound_port);
+  spdlog::info("viewer: {} ({} display points, web files from {}{})",
+               std::string(tls ? "https://" : "http://") + opt.bind + ":" + std::to_string(bound_port) + "/",
+               point_body.size(), dir, open_access ? "; NO TOKEN: anyone on this machine can pull" : "");
+}
+
+template <class S>
+void Viewer::Impl::start_on(S& srv) {
   srv.clear_access_channels(websocketpp::log::alevel::all);
   srv.clear_error_channels(websocketpp::log::elevel::all);
   srv.init_asio();
   srv.set_reuse_addr(true);
   srv.set_max_message_size(kMaxClientMessageBytes);     // a page's messages are tiny (input.hpp)
   srv.set_max_http_body_size(kMaxClientMessageBytes);
-  srv.set_http_handler([this](Hdl h) { on_http(h); });
-  srv.set_open_handler([this](Hdl h) { on_open(h); });
+  srv.set_http_handler([this, &srv](Hdl h) { on_http(srv, h); });
+  srv.set_validate_handler([this, &srv](Hdl h) { return on_validate(srv, h); });
+  srv.set_open_handler([this, &srv](Hdl h) { on_open(srv, h); });
   srv.set_close_handler([this](Hdl h) { on_close(h); });
   srv.set_fail_handler([](Hdl) {});
-  srv.set_message_handler([this](Hdl h, WsServer::message_ptr m) { on_message(h, m); });
+  srv.set_message_handler([this](Hdl h, typename S::message_ptr m) { on_message(h, m->get_payload()); });
   asio::error_code aec;
   const asio::ip::address addr = asio::ip::make_address(opt.bind, aec);
-  if (aec) throw std::runtime_error("viewer: --bind '" + opt.bind + "' is not an IP address");
   websocketpp::lib::error_code ec;
   srv.listen(asio::ip::tcp::endpoint(addr, static_cast<unsigned short>(opt.port)), ec);
   if (ec)
@@ -385,12 +546,26 @@ void Viewer::Impl::start_server() {
   if (ec) throw std::runtime_error("viewer: accept failed: " + ec.message());
   bound_port = srv.get_local_endpoint(aec).port();
   timer = std::make_unique<asio::steady_timer>(srv.get_io_service());
-  spdlog::info("viewer: {} ({} display points, web files from {})", "http://" + opt.bind + ":" + std::to_string(bound_port) + "/",
-               point_body.size(), dir);
 }
 
-void Viewer::Impl::on_http(Hdl h) {
+template <class S>
+void Viewer::Impl::on_http(S& srv, Hdl h) {
   auto con = srv.get_con_from_hdl(h);
+  con->append_header("Cache-Control", "no-store");
+  con->append_header("Referrer-Policy", "no-referrer");   // the token in the URL never leaves in a Referer
+  con->append_header("X-Content-Type-Options", "nosniff");
+  bool from_query = false;
+  const Role role = authorize(con, true, &from_query);
+  if (role == Role::kNone) {
+    con->set_status(websocketpp::http::status_code::forbidden);
+    con->append_header("Content-Type", "text/plain; charset=utf-8");
+    con->set_body("haptree viewer: this page needs its token: open the URL the viewer printed "
+                  "(http://HOST:PORT/?token=...)\n");
+    return;
+  }
+  if (from_query && !open_access)   // the page's own requests and its reloads carry the token as a cookie
+    con->append_header("Set-Cookie", cookie_name + "=" + query_param(con->get_resource(), "token") +
+                                         "; Path=/; HttpOnly; SameSite=Strict" + (tls ? "; Secure" : ""));
   const std::string* body = nullptr;
   std::string type;
   switch (route_resource(con->get_resource())) {
@@ -408,17 +583,42 @@ void Viewer::Impl::on_http(Hdl h) {
   }
   con->set_status(websocketpp::http::status_code::ok);
   con->append_header("Content-Type", type);
-  con->append_header("Cache-Control", "no-store");
   con->set_body(*body);
 }
 
-void Viewer::Impl::on_open(Hdl h) {
+// A WebSocket upgrade: from the page's own origin (a browser always says which page opens the socket;
+// another site's page must not read or pull the session) and with a token.
+template <class S>
+bool Viewer::Impl::on_validate(S& srv, Hdl h) {
+  auto con = srv.get_con_from_hdl(h);
+  if (!same_origin(con->get_request_header("Origin"), con->get_request_header("Host"), tls)) {
+    asio::error_code ec;
+    const auto ep = con->get_raw_socket().remote_endpoint(ec);
+    refuse(Refusal::kForeignOrigin, ec ? std::string("?") : ep.address().to_string(),
+           "Origin " + con->get_request_header("Origin").substr(0, 80));
+    con->set_status(websocketpp::http::status_code::forbidden);
+    return false;
+  }
+  if (authorize(con, true) == Role::kNone) {
+    con->set_status(websocketpp::http::status_code::forbidden);
+    return false;
+  }
+  return true;
+}
+
+template <class S>
+void Viewer::Impl::on_open(S& srv, Hdl h) {
+  auto con = srv.get_con_from_hdl(h);
   Client c;
   c.id = next_client++;
+  c.role = authorize(con, false);
+  asio::error_code aec;
+  const auto ep = con->get_raw_socket().remote_endpoint(aec);
+  c.address = aec ? std::string("?") : ep.address().to_string();
   std::vector<bool> taken(static_cast<size_t>(opt.users), false);
   for (const auto& kv : clients)
     if (kv.second.user >= 0) taken[static_cast<size_t>(kv.second.user)] = true;
-  for (int u = 0; u < opt.users; ++u)
+  for (int u = 0; u < opt.users && c.role == Role::kPull; ++u)
     if (!taken[static_cast<size_t>(u)]) {
       c.user = u;
       break;
@@ -429,9 +629,11 @@ void Viewer::Impl::on_open(Hdl h) {
   hello["t"] = "hello";
   hello["user"] = c.user;
   hello["client"] = c.id;
+  hello["role"] = c.role == Role::kPull ? "pull" : "watch";
   websocketpp::lib::error_code ec;
   srv.send(h, hello.dump(), websocketpp::frame::opcode::text, ec);
-  spdlog::info("viewer: client {} connected as {}", c.id, c.user >= 0 ? "user " + std::to_string(c.user) : "spectator");
+  spdlog::info("viewer: client {} ({}) connected as {}", c.id, c.address,
+               c.user >= 0 ? "user " + std::to_string(c.user) : c.role == Role::kWatch ? "watcher (watch token)" : "spectator");
 }
 
 void Viewer::Impl::on_close(Hdl h) {
@@ -466,12 +668,13 @@ void Viewer::Impl::publish_pointer(const Client& c, bool button) {
   pointer_msgs.fetch_add(1, std::memory_order_relaxed);
 }
 
-void Viewer::Impl::on_message(Hdl h, WsServer::message_ptr msg) {
+void Viewer::Impl::on_message(Hdl h, const std::string& pl) {
   auto it = clients.find(h);
   if (it == clients.end()) return;
   Client& c = it->second;
-  const std::string& pl = msg->get_payload();
   const ClientCommand cmd = parse_client_message(pl.data(), pl.size());
+  if (c.role == Role::kWatch && cmd.kind == ClientCommand::Kind::kDown)
+    refuse(Refusal::kWatchPull, c.address, "client " + std::to_string(c.id));
   if (c.user < 0) return;
   bool mapped;
   {
@@ -531,9 +734,11 @@ void Viewer::Impl::tick() {
     frames_at_stats = frames_sent.load();
     s.snapshot_age_ms = -1;
     s.messages_out = pointer_msgs.load();
-    s.extra_names = {"clients", "frames_dropped"};
+    s.extra_names = {"clients", "frames_dropped", "refused_no_token", "refused_wrong_token", "refused_origin",
+                     "refused_watch_pull"};
     s.extra_values = {static_cast<double>(nclients.load()), static_cast<double>(frames_dropped.load())};
-    s.n_extra = 2;
+    for (const auto& n : refused) s.extra_values.push_back(static_cast<double>(n.load()));
+    s.n_extra = static_cast<int>(s.extra_names.size());
     {
       std::lock_guard<std::mutex> lock(mutex);
       s.messages_in = scene_msgs;
@@ -613,6 +818,7 @@ void Viewer::Impl::tick() {
     for (int a = 0; a < 3; ++a) frame_buf[4 + 3 * i + static_cast<size_t>(a)] = static_cast<float>(p[a]);
   }
   const size_t bytes = frame_buf.size() * sizeof(float);
+  net([&](auto& srv) {
   for (auto& kv : clients) {
     auto con = srv.get_con_from_hdl(kv.first);
     if (!con || con->get_state() != websocketpp::session::state::open) continue;
@@ -631,6 +837,7 @@ void Viewer::Impl::tick() {
     if (!ec) srv.send(kv.first, frame_buf.data(), bytes, websocketpp::frame::opcode::binary, ec);
     if (!ec) frames_sent.fetch_add(1, std::memory_order_relaxed);
   }
+  });
 }
 
 void Viewer::Impl::schedule() {
@@ -646,6 +853,7 @@ Viewer::Viewer(bus::Bus& bus, const ViewerOptions& options) : impl_(std::make_un
   if (!(options.max_fps > 0 && options.max_fps <= 240)) throw std::runtime_error("viewer: --max-fps must be in (0, 240]");
   if (options.users < 1 || options.users > 8) throw std::runtime_error("viewer: --users must be in [1, 8]");
   if (options.port < 0 || options.port > 65535) throw std::runtime_error("viewer: --port must be in [0, 65535]");
+  impl_->setup_access();
   impl_->load_scene();
   impl_->start_server();
   impl_->subscribe();
@@ -656,21 +864,41 @@ Viewer::~Viewer() = default;
 int Viewer::run(const std::atomic<bool>& stop) {
   Impl& m = *impl_;
   m.schedule();
-  auto& io = m.srv.get_io_service();
-  while (!stop.load(std::memory_order_relaxed)) io.run_for(std::chrono::milliseconds(100));
-  // Release every tab's grab, close the sockets, let the closes go out.
-  for (auto& kv : m.clients) m.publish_pointer(kv.second, false);
-  websocketpp::lib::error_code ec;
-  m.srv.stop_listening(ec);
-  for (auto& kv : m.clients) m.srv.close(kv.first, websocketpp::close::status::going_away, "session over", ec);
-  m.timer->cancel();
-  io.run_for(std::chrono::milliseconds(300));
-  m.srv.stop();
+  m.net([&](auto& srv) {
+    auto& io = srv.get_io_service();
+    while (!stop.load(std::memory_order_relaxed)) io.run_for(std::chrono::milliseconds(100));
+    // Release every tab's grab, close the sockets, let the closes go out.
+    for (auto& kv : m.clients) m.publish_pointer(kv.second, false);
+    websocketpp::lib::error_code ec;
+    srv.stop_listening(ec);
+    for (auto& kv : m.clients) srv.close(kv.first, websocketpp::close::status::going_away, "session over", ec);
+    m.timer->cancel();
+    io.run_for(std::chrono::milliseconds(300));
+    srv.stop();
+  });
   return 0;
 }
 
 int Viewer::port() const { return impl_->bound_port; }
-std::string Viewer::url() const { return "http://" + impl_->opt.bind + ":" + std::to_string(impl_->bound_port) + "/"; }
+std::string Viewer::url() const {
+  const Impl& m = *impl_;
+  return std::string(m.tls ? "https://" : "http://") + m.opt.bind + ":" + std::to_string(m.bound_port) + "/" +
+         (m.open_access ? "" : "?token=" + m.pull_token);
+}
+std::string Viewer::watch_url() const {
+  const Impl& m = *impl_;
+  if (m.watch_token.empty()) return "";
+  return std::string(m.tls ? "https://" : "http://") + m.opt.bind + ":" + std::to_string(m.bound_port) + "/?token=" +
+         m.watch_token;
+}
+ViewerRefusals Viewer::refusals() const {
+  ViewerRefusals r;
+  r.no_token = impl_->refused[0].load();
+  r.wrong_token = impl_->refused[1].load();
+  r.foreign_origin = impl_->refused[2].load();
+  r.watch_pull = impl_->refused[3].load();
+  return r;
+}
 int64_t Viewer::frames_sent() const { return impl_->frames_sent.load(); }
 int64_t Viewer::frames_dropped() const { return impl_->frames_dropped.load(); }
 int Viewer::clients() const { return impl_->nclients.load(); }

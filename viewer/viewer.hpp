@@ -2,8 +2,8 @@
 // Viewer: the session seen in a web browser (issue 12), the fourth thin process (STYLE.md §7.1).
 // Subscribes to the session's channels (scene state, user forces, device states, feedback, stats),
 // loads the scene once to know where every atom (or body) sits on its body, and serves on one port
-// (127.0.0.1 unless told otherwise) the page (viewer/web), the scene as PDB (/scene.pdb) and one
-// WebSocket (/ws): per frame (<= max_fps) a JSON text with the overlays and the HUD, then the atom
+// (127.0.0.1 unless told otherwise; http, or https with a certificate), to holders of a token only, the
+// page (viewer/web), the scene as PDB (/scene.pdb) and one WebSocket (/ws): per frame (<= max_fps) a JSON text with the overlays and the HUD, then the atom
 // positions as Float32. A client whose socket still holds more than max_buffered_bytes gets no new
 // frame (dropped, counted): a slow tab never slows the bus handler or the other tabs.
 // The page is also a device: each tab takes a free user id; its pointer comes back as JSON and goes
@@ -33,7 +33,25 @@ struct ViewerOptions {
   double max_fps = 30;
   size_t max_buffered_bytes = 1 << 20;
   std::string channel_suffix;
+  // Access: the page, its files and its WebSocket need a token (`?token=` once, then a cookie). Two roles:
+  // the pull token may take a user and pull, the watch token only watches.
+  std::string token;               // the pull token; "" = read token_file, else a random one
+  std::string token_file;          // file whose first line is the pull token
+  std::string watch_token_file;    // file whose first line is the watch-only token ("" = no watch role)
+  bool no_token = false;           // serve without a token: refused unless bind is a loopback address
+  std::string tls_cert, tls_key;   // PEM files: HTTPS and wss:// instead of http and ws (both or neither)
 };
+
+// Requests refused, by reason (each reason logged once per client address).
+struct ViewerRefusals {
+  int64_t no_token = 0, wrong_token = 0, foreign_origin = 0, watch_pull = 0;
+  int64_t total() const { return no_token + wrong_token + foreign_origin + watch_pull; }
+};
+
+// 24 random bytes (libsodium) as 48 hex digits.
+std::string random_viewer_token();
+// The first line of a token file, trimmed; throws std::runtime_error (missing, empty, < 16 characters).
+std::string read_viewer_token_file(const std::string& path);
 
 class Viewer {
  public:
@@ -44,7 +62,9 @@ class Viewer {
   // Serves until stop is true. Returns 0.
   int run(const std::atomic<bool>& stop);
   int port() const;
-  std::string url() const;
+  std::string url() const;          // with ?token= of the pull token (none with no_token)
+  std::string watch_url() const;    // with the watch token; "" without one
+  ViewerRefusals refusals() const;
   int64_t frames_sent() const;
   int64_t frames_dropped() const;
   int clients() const;

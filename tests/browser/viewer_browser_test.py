@@ -48,6 +48,7 @@ class Launcher:
         self.lines = []
         self.force = {}          # user -> list of (time, |f|)
         self.url_seen = threading.Event()
+        self.url = None
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self):
@@ -56,6 +57,7 @@ class Launcher:
             self.log.flush()
             self.lines.append(line)
             if line.startswith("viewer: open http://"):
+                self.url = line.split()[2]   # http://127.0.0.1:PORT/?token=...
                 self.url_seen.set()
             if line.startswith("t "):
                 for m in self.LINE.finditer(line):
@@ -87,7 +89,8 @@ def wait_for(what, fn, timeout):
 def ca_atoms(url):
     """Indices (file order = NGL's atom index) of the CA atoms in the viewer's /scene.pdb: always drawn."""
     import urllib.request
-    with urllib.request.urlopen(url + "scene.pdb", timeout=30) as r:
+    base, query = url.split("?", 1)
+    with urllib.request.urlopen(base + "scene.pdb?" + query, timeout=30) as r:
         lines = [l for l in r.read().decode().splitlines() if l.startswith(("ATOM", "HETATM"))]
     return [i for i, l in enumerate(lines) if l[12:16].strip() == "CA"]
 
@@ -144,7 +147,8 @@ def main():
     try:
         if not launcher.url_seen.wait(120):
             raise AssertionError("the launcher printed no viewer URL:\n" + "".join(launcher.lines[-20:]))
-        url = f"http://127.0.0.1:{port}/"
+        url = launcher.url
+        check(url.startswith(f"http://127.0.0.1:{port}/?token="), f"the launcher prints the URL with its token ({url})")
         browser = cdp.Browser()
         a = browser.new_page(url)
         wait_for("tab A ready", lambda: ds(a, "ready") == "1", 120)

@@ -39,13 +39,15 @@ def run(exe, seconds, mode):
     fps = None
     if mode == "tab":
         out = []
-        for line in p.stdout:   # wait for the URL
+        url = None
+        for line in p.stdout:   # wait for the URL (with its token)
             out.append(line)
             if line.startswith("viewer: open"):
+                url = line.split()[2]
                 break
         b = cdp.Browser()
         try:
-            page = b.new_page(f"http://127.0.0.1:{port}/")
+            page = b.new_page(url)
             page.call("Page.bringToFront")   # a background tab gets no animation frames
             t_end = time.time() + 120
             while time.time() < t_end and page.eval("(document.body && document.body.dataset.ready) || ''") != "1":

@@ -90,11 +90,11 @@ def watch_replay(viewer, log, out_dir):
         m, seen = None, []
         for line in v.stdout:   # its log lines come first (spdlog on stdout)
             seen.append(line)
-            m = re.match(r"viewer: open http://127\.0\.0\.1:(\d+)/", line)
+            m = re.match(r"viewer: open http://127\.0\.0\.1:(\d+)/\?token=(\S+)", line)
             if m:
                 break
         assert m, f"the viewer printed no URL: {seen[-5:]}"
-        ws = websocket.create_connection(f"ws://127.0.0.1:{m.group(1)}/ws", timeout=10)
+        ws = websocket.create_connection(f"ws://127.0.0.1:{m.group(1)}/ws?token={m.group(2)}", timeout=10)
         hello = json.loads(ws.recv())
         assert hello["t"] == "hello" and hello["user"] == 0, hello
         player = subprocess.Popen(["lcm-logplayer", f"--lcm-url={URL}", log],

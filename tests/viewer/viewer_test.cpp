@@ -53,6 +53,29 @@ TEST(ViewerParse, RefusesNonFiniteMalformedAndAbsurdInput) {
   }
 }
 
+TEST(ViewerParse, TokenCookieAndOrigin) {
+  EXPECT_EQ(query_param("/ws?token=abc", "token"), "abc");
+  EXPECT_EQ(query_param("/?x=1&token=a%2Db+c&y=2", "token"), "a-b c");
+  EXPECT_EQ(query_param("/?tokens=1&xtoken=2", "token"), "");
+  EXPECT_EQ(query_param("/?token=%zz", "token"), "");
+  EXPECT_EQ(query_param("/?token=%2", "token"), "");
+  EXPECT_EQ(query_param("/token=abc", "token"), "");
+  EXPECT_EQ(cookie_value("a=1; haptree_viewer_80=tok; b=2", "haptree_viewer_80"), "tok");
+  EXPECT_EQ(cookie_value("haptree_viewer_8=x; haptree_viewer_80=y", "haptree_viewer_80"), "y");
+  EXPECT_EQ(cookie_value("xhaptree_viewer_80=y", "haptree_viewer_80"), "");
+  EXPECT_EQ(cookie_value("", "a"), "");
+  EXPECT_TRUE(same_origin("", "127.0.0.1:80", false));   // not a browser
+  EXPECT_TRUE(same_origin("http://127.0.0.1:8080", "127.0.0.1:8080", false));
+  EXPECT_TRUE(same_origin("http://LabHost:8080", "labhost:8080", false));
+  EXPECT_TRUE(same_origin("https://h:1", "h:1", true));
+  EXPECT_FALSE(same_origin("http://h:1", "h:1", true));
+  EXPECT_FALSE(same_origin("https://h:1", "h:1", false));
+  EXPECT_FALSE(same_origin("http://127.0.0.1:8081", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("http://evil.example", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("null", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("http://127.0.0.1:8080", "", false));
+}
+
 std::string http_get(int port, const std::string& path) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in a{};
@@ -78,15 +101,24 @@ TEST(Viewer, ServesThePageTheSceneAndNothingElse) {
   o.port = 0;   // any free port
   o.scene = "chain";
   o.n = 5;
+  o.token = "unit-test-token-0123456789";
   Viewer v(bus, o);
   ASSERT_GT(v.port(), 0);
-  EXPECT_EQ(v.url(), "http://127.0.0.1:" + std::to_string(v.port()) + "/");
+  EXPECT_EQ(v.url(), "http://127.0.0.1:" + std::to_string(v.port()) + "/?token=" + o.token);
   std::atomic<bool> stop{false};
   std::thread t([&] { v.run(stop); });
-  const std::string page = http_get(v.port(), "/");
+  const std::string tq = "?token=" + o.token;
+  const std::string page = http_get(v.port(), "/" + tq);
   EXPECT_NE(page.find("200 OK"), std::string::npos);
   EXPECT_NE(page.find("vendor/ngl.js"), std::string::npos);
-  const std::string pdb = http_get(v.port(), "/scene.pdb");
+  EXPECT_NE(page.find("Set-Cookie: haptree_viewer_" + std::to_string(v.port()) + "=" + o.token + ";"), std::string::npos);
+  // without the token, or with another one (also one that only differs in its last character): 403
+  for (const std::string& bad : {std::string("/"), "/scene.pdb", "/?token=" + o.token.substr(0, o.token.size() - 1) + "X",
+                                 "/?token=" + o.token + "0", "/?token="})
+    EXPECT_NE(http_get(v.port(), bad).find("403"), std::string::npos) << bad;
+  EXPECT_EQ(v.refusals().no_token, 3);
+  EXPECT_EQ(v.refusals().wrong_token, 2);
+  const std::string pdb = http_get(v.port(), "/scene.pdb" + tq);
   // chain(5): the ground + 5 bodies as points, 5 joints as CONECT records
   size_t atoms = 0, conect = 0;
   for (size_t p = 0; (p = pdb.find("\nHETATM", p)) != std::string::npos; ++p) ++atoms;
@@ -94,7 +126,7 @@ TEST(Viewer, ServesThePageTheSceneAndNothingElse) {
   EXPECT_EQ(atoms, 6u);
   EXPECT_EQ(conect, 5u);
   for (const char* bad : {"/../../etc/passwd", "/vendor/../viewer.cpp", "/nothing", "/index.html/.."})
-    EXPECT_NE(http_get(v.port(), bad).find("404"), std::string::npos) << bad;
+    EXPECT_NE(http_get(v.port(), bad + tq).find("404"), std::string::npos) << bad;
   stop = true;
   t.join();
 }

@@ -29,7 +29,12 @@ const scheme = NGL.ColormakerRegistry.addScheme(function () {
   this.atomColor = (atom) => (activeOfPoint && activeOfPoint[atom.index] ? ACTIVE : RIGID);
 }, 'haptree-active');
 
-const ws = new WebSocket(`ws://${location.host}/ws`);
+// The token: in the URL once (the server then sets a cookie, so a reload without it works); taken off the
+// address bar so it is not shared by a screenshot or a copied link, and given to the WebSocket too.
+const token = new URLSearchParams(location.search).get('token');
+if (token) history.replaceState(null, '', location.pathname);
+const ws = new WebSocket(`${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
+  (token ? `?token=${encodeURIComponent(token)}` : ''));
 ws.binaryType = 'arraybuffer';
 ws.onclose = () => { setStatus('disconnected (session over?)'); };
 ws.onmessage = (ev) => {
@@ -48,7 +53,10 @@ function setStatus(s) { document.getElementById('status').textContent = s; }
 async function onHello(m) {
   hello = m;
   body.dataset.user = String(m.user);
-  setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}` : `spectator (all ${m.users} users taken) — ${m.scene}`);
+  body.dataset.role = m.role || '';
+  setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}`
+    : m.role === 'watch' ? `watching (this link may not pull) — ${m.scene}`
+      : `spectator (all ${m.users} users taken) — ${m.scene}`);
   comp = await stage.loadFile('/scene.pdb', { ext: 'pdb', defaultRepresentation: false });
   if (m.kind === 'molecule') {
     cartoonRepr = comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
