@@ -40,6 +40,7 @@ struct ViewerLaunch {
   int users = 2;                // tabs that can pull at once (couplers are started for them)
   std::string token_file, watch_token_file, tls_cert, tls_key;
   bool no_token = false;
+  std::vector<std::string> mesh_paths;
 };
 std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const haptree::SimServerOptions& so,
                                               const ViewerLaunch& vl, int users) {
@@ -56,6 +57,7 @@ std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const hapt
   vo.no_token = vl.no_token;
   vo.tls_cert = vl.tls_cert;
   vo.tls_key = vl.tls_key;
+  vo.mesh_paths = vl.mesh_paths;
   auto v = std::make_unique<haptree::Viewer>(bus, vo);
   std::printf("viewer: open %s\n", v->url().c_str());
   if (!v->watch_url().empty()) std::printf("viewer: watch only %s\n", v->watch_url().c_str());
@@ -85,6 +87,7 @@ int main(int argc, char** argv) {
   app.add_option("--scene", so.scene, "chain|binary_tree|random_tree|star|protein_like, molecule name or PDB")->capture_default_str();
   app.add_option("--n", so.n, "bodies of a procedural scene")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
+  app.add_option("--mesh-path", vl.mesh_paths, "viewer: folder(s) where the URDF's package:// and relative mesh files are found");
   app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->check(CLI::Range(1, 1 << 24))->capture_default_str();
   app.add_option("--dt", so.dt, "sim time step (scene units)")->check(haptree::bus::positive(1.0))->capture_default_str();
   std::vector<double> gravity;
@@ -210,6 +213,7 @@ int main(int argc, char** argv) {
     se.viewer_tls_cert = vl.tls_cert;
     se.viewer_tls_key = vl.tls_key;
     se.viewer_no_token = vl.no_token;
+    se.viewer_mesh_paths = vl.mesh_paths;
     se.scripted_users = vl.port > 0 ? scripted_users : -1;
     return haptree::tools::run_processes(po, se, g_stop);
   }

@@ -384,6 +384,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       vw.insert(vw.end(), {"--port", std::to_string(se.viewer_port), "--bind", se.viewer_bind, "--scene", se.sim.scene,
                            "--n", std::to_string(se.sim.n), "--users", std::to_string(se.users)});
       if (!se.sim.urdf.empty()) vw.insert(vw.end(), {"--urdf", se.sim.urdf});
+      for (const auto& d : se.viewer_mesh_paths) vw.insert(vw.end(), {"--mesh-path", d});
       // The token goes to the viewer in a file (a command line is visible to every user in ps).
       std::string token, token_file = se.viewer_token_file;
       if (se.viewer_no_token) {

@@ -3,6 +3,7 @@
 // executables as child processes on this host (docs/processes.md).
 #include <atomic>
 #include <string>
+#include <vector>
 
 #include "sim_server/sim_server.hpp"
 
@@ -34,6 +35,7 @@ struct SessionOptions {
   // the log folder (mode 0600) for the viewer and prints in the URL.
   std::string viewer_token_file, viewer_watch_token_file, viewer_tls_cert, viewer_tls_key;
   bool viewer_no_token = false;
+  std::vector<std::string> viewer_mesh_paths;
   int scripted_users = -1;
 };
 

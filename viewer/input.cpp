@@ -48,6 +48,7 @@ WebResource route_resource(const std::string& resource) noexcept {
   if (res == "/vendor/ngl.js") return WebResource::kNglJs;
   if (res == "/scene.pdb") return WebResource::kScenePdb;
   if (res == "/scene.json") return WebResource::kSceneJson;
+  if (res == "/scene.meshes") return WebResource::kSceneMeshes;
   return WebResource::kNotFound;
 }
 

@@ -25,7 +25,7 @@ struct ClientCommand {
 ClientCommand parse_client_message(const char* data, size_t size) noexcept;
 
 // The files the viewer serves; kNotFound for anything else. The query string is ignored.
-enum class WebResource { kNotFound, kIndex, kViewerJs, kNglJs, kScenePdb, kSceneJson };
+enum class WebResource { kNotFound, kIndex, kViewerJs, kNglJs, kScenePdb, kSceneJson, kSceneMeshes };
 WebResource route_resource(const std::string& resource) noexcept;
 
 // Access control's parsing (any bytes; never throws). The value of `key` in a resource's query string

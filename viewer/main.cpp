@@ -23,6 +23,7 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--n", o.n, "bodies of a procedural scene")->capture_default_str();
   app.add_option("--urdf", o.urdf, "URDF file (overrides --scene)");
+  app.add_option("--mesh-path", o.mesh_paths, "folder(s) where the URDF's package:// and relative mesh files are found");
   app.add_option("--users", o.users, "user ids a tab may take (each needs a coupler and a browser device)")
       ->check(CLI::Range(1, 8))->capture_default_str();
   app.add_option("--max-fps", o.max_fps, "frames per second sent to each tab")->check(CLI::Range(1.0, 240.0))
@@ -49,10 +50,10 @@ int main(int argc, char** argv) {
     const int rc = viewer.run(g_stop);
     handler.stop();
     const haptree::ViewerRefusals r = viewer.refusals();
-    spdlog::info("viewer: {} frames sent, {} dropped for slow tabs, {} pointer messages; refused: {} without token, "
-                 "{} wrong token, {} foreign origin, {} watch token pulling", viewer.frames_sent(),
-                 viewer.frames_dropped(), viewer.pointer_messages(), r.no_token, r.wrong_token, r.foreign_origin,
-                 r.watch_pull);
+    spdlog::info("viewer: {} frames sent ({} bytes), {} dropped for slow tabs, {} pointer messages; refused: {} "
+                 "without token, {} wrong token, {} foreign origin, {} watch token pulling", viewer.frames_sent(),
+                 viewer.frame_bytes(), viewer.frames_dropped(), viewer.pointer_messages(), r.no_token, r.wrong_token,
+                 r.foreign_origin, r.watch_pull);
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

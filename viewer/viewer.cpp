@@ -1,4 +1,5 @@
 #include "viewer/viewer.hpp"
+#include "viewer/robot_visuals.hpp"
 
 #define ASIO_STANDALONE
 #define _WEBSOCKETPP_CPP11_STL_
@@ -15,8 +16,10 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <fstream>
 #include <array>
+#include <limits>
 #include <map>
 #include <mutex>
 #include <set>
@@ -112,6 +115,21 @@ struct UserSlot {
   Vec3 track_key = Vec3::Constant(std::nan("")), track_local = Vec3::Zero();
 };
 
+// One frame, one binary WebSocket message: "HTF1", the JSON's length (uint32, little-endian, a multiple of
+// 4), the JSON (overlays + HUD) padded with spaces, then x y z per display point as float32 (none when
+// the scene did not move since this tab's last frame).
+void encode_frame(const std::string& json_text, const float* pos, size_t nfloats, std::string& out) {
+  const size_t padded = (json_text.size() + 3) & ~size_t{3};
+  out.assign(8 + padded + 4 * nfloats, ' ');
+  std::memcpy(out.data(), "HTF1", 4);
+  const uint32_t n = static_cast<uint32_t>(padded);
+  const unsigned char le[4] = {static_cast<unsigned char>(n), static_cast<unsigned char>(n >> 8),
+                               static_cast<unsigned char>(n >> 16), static_cast<unsigned char>(n >> 24)};
+  std::memcpy(out.data() + 4, le, 4);
+  std::memcpy(out.data() + 8, json_text.data(), json_text.size());
+  if (nfloats) std::memcpy(out.data() + 8 + padded, pos, 4 * nfloats);   // x86/ARM: little-endian floats
+}
+
 enum class Role { kNone, kWatch, kPull };
 enum class Refusal { kNoToken, kWrongToken, kForeignOrigin, kWatchPull };
 const char* refusal_text(Refusal r) {
@@ -141,6 +159,9 @@ struct Client {
   Vec3 target_scene = Vec3::Zero();
   bool have_target = false;
   int64_t mask_sent = -1;   // active-mask version this client has
+  int64_t updates_sent = -1, scene_sent = -1;   // Impl::updates and scene_msgs of its last frame
+  Clock::time_point last_frame{};
+  bool due = false;
 };
 
 }  // namespace
@@ -156,6 +177,8 @@ struct Viewer::Impl {
   double disp_scale = 10;        // display unit (Å) per scene unit
   Vec3 disp_center = Vec3::Zero();
   std::string pdb, index_html, viewer_js, ngl_js, ngl_license, scene_json;
+  std::string meshes_bin;   // /scene.meshes: the robot's visuals per body (robot_visuals.hpp), display units
+  bool with_quats = false;  // frames carry each body's orientation after the points (robots with visuals)
   // bus slots
   std::mutex mutex;
   std::vector<Vec3> r;
@@ -185,9 +208,11 @@ struct Viewer::Impl {
   std::map<Hdl, Client, std::owner_less<Hdl>> clients;
   int64_t next_client = 1, pointer_seq = 0;
   const int64_t instance_id = bus::new_instance_id();
-  std::vector<float> frame_buf;
+  std::vector<float> frame_pos;
+  std::string msg_buf;
+  int64_t updates = 0;   // under mutex: +1 per bus message that changes what a frame shows
   std::vector<Vec3> x_scene;
-  std::atomic<int64_t> frames_sent{0}, frames_dropped{0}, pointer_msgs{0};
+  std::atomic<int64_t> frames_sent{0}, frames_dropped{0}, pointer_msgs{0}, frame_bytes{0};
   std::atomic<int> nclients{0};
   int bound_port = 0;
   Clock::time_point next_keepalive = Clock::now(), next_stats = Clock::now() + std::chrono::seconds(1);
@@ -291,8 +316,32 @@ void Viewer::Impl::load_scene() {
     out += "END\n";
     pdb = out;
   }
+  if (!opt.urdf.empty()) {
+    const RobotVisuals vis = load_robot_visuals(opt.urdf, *model, opt.mesh_paths);
+    for (const auto& w : vis.warnings) spdlog::warn("viewer: {}", w);
+    if (!vis.bodies.empty()) {
+      // a frame's layout: "HTF1", uint32 JSON length, JSON [{body, tris}], then per body float32 position, normal, colour
+      // (9 floats per triangle each; positions in the body frame, display units)
+      json list = json::array();
+      std::string data;
+      for (const auto& b : vis.bodies) {
+        list.push_back({{"body", b.body}, {"tris", b.position.size() / 9}});
+        std::vector<float> p = b.position;
+        for (float& x : p) x = static_cast<float>(x * disp_scale);
+        for (const std::vector<float>* v : {static_cast<const std::vector<float>*>(&p), &b.normal, &b.color})
+          data.append(reinterpret_cast<const char*>(v->data()), v->size() * sizeof(float));
+      }
+      encode_frame(list.dump(), nullptr, 0, meshes_bin);
+      meshes_bin += data;
+      with_quats = true;
+      spdlog::info("viewer: {} visuals drawn on {} bodies ({} meshes, {} shapes, {} missing meshes as spheres)",
+                   vis.meshes + vis.primitives + vis.missing, vis.bodies.size(), vis.meshes, vis.primitives, vis.missing);
+    }
+  }
   json sj;
   sj["kind"] = mol ? "molecule" : "bodies";
+  sj["meshes"] = !meshes_bin.empty();
+  sj["quats"] = with_quats;
   sj["scene"] = opt.urdf.empty() ? opt.scene : opt.urdf;
   sj["points"] = static_cast<int>(point_body.size());
   sj["bodies"] = nb - 1;
@@ -308,7 +357,7 @@ void Viewer::Impl::load_scene() {
   active.assign(nb, 0);
   users.assign(static_cast<size_t>(opt.users), UserSlot{});
   x_scene.resize(point_body.size());
-  frame_buf.resize(4 + 3 * point_body.size());
+  frame_pos.resize(3 * point_body.size() + (with_quats ? 4 * static_cast<size_t>(nb) : 0));
 }
 
 void Viewer::Impl::subscribe() {
@@ -342,6 +391,7 @@ void Viewer::Impl::subscribe() {
     neglected = m.neglected_metric;
     active_dofs = m.active_dofs;
     ++scene_msgs;
+    ++updates;
   }));
   for (int u = 0; u < opt.users; ++u) {
     subs(bus.subscribe_raw(bus::channel::user_force(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
@@ -354,6 +404,7 @@ void Viewer::Impl::subscribe() {
       s.uf_body = s.uf_active ? m.grab_body : 0;
       s.uf_point = Vec3(m.grab_point[0], m.grab_point[1], m.grab_point[2]);
       if (!s.uf_point.allFinite()) s.uf_active = false;
+      ++updates;
     }));
     subs(bus.subscribe_raw(bus::channel::device_state(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
       if (!due(users[u].next_device_s)) return;
@@ -367,6 +418,7 @@ void Viewer::Impl::subscribe() {
       users[u].buttons = m.buttons;
       users[u].device_grab_body = m.grab_body;
       users[u].device_grab_seq = m.grab_seq;
+      ++updates;
     }));
     subs(bus.subscribe_raw(bus::channel::feedback(u, sfx), [this, u](const void* d, uint32_t n, const std::string&) {
       if (!due(users[u].next_feedback_s)) return;
@@ -377,6 +429,7 @@ void Viewer::Impl::subscribe() {
       users[u].have_feedback = true;
       users[u].force_n = f.allFinite() ? f : Vec3::Zero();
       users[u].flags = m.flags;
+      ++updates;
     }));
     subs(bus.subscribe<lcmt_process_stats>(bus::channel::stats("coupler_" + std::to_string(u), sfx),
                                       [this, u](const lcmt_process_stats& m, const std::string&) {
@@ -387,6 +440,7 @@ void Viewer::Impl::subscribe() {
       s.snapshot_age_ms = m.snapshot_age_ms;
       s.watchdog_events = m.watchdog_events;
       s.clamp_events = m.clamp_events;
+      ++updates;
       std::map<std::string, double> ex;
       for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i) ex[m.extra_names[i]] = m.extra_values[i];
       if (ex.count("position_scale") && ex.count("offset_x") && ex.count("offset_y") && ex.count("offset_z")) {
@@ -405,6 +459,7 @@ void Viewer::Impl::subscribe() {
   subs(bus.subscribe<lcmt_process_stats>(bus::channel::stats("sim_server", sfx), [this](const lcmt_process_stats& m, const std::string&) {
     std::lock_guard<std::mutex> lock(mutex);
     sim_rate = m.loop_rate_hz;
+    ++updates;
     for (int i = 0; i < m.n_extra && i < static_cast<int>(m.extra_names.size()); ++i)
       if (m.extra_names[i] == "resets") sim_resets = m.extra_values[i];
   }));
@@ -574,6 +629,7 @@ void Viewer::Impl::on_http(S& srv, Hdl h) {
     case WebResource::kNglJs: body = &ngl_js, type = "text/javascript; charset=utf-8"; break;
     case WebResource::kScenePdb: body = &pdb, type = "chemical/x-pdb"; break;
     case WebResource::kSceneJson: body = &scene_json, type = "application/json"; break;
+    case WebResource::kSceneMeshes: body = &meshes_bin, type = "application/octet-stream"; break;
     case WebResource::kNotFound: break;
   }
   if (!body) {
@@ -747,20 +803,37 @@ void Viewer::Impl::tick() {
     next_stats += std::chrono::seconds(1);
   }
   if (clients.empty()) return;
+  // A frame goes to a tab only when something it shows changed (a scene state, a device, a force, a
+  // coupler's stats) or once a second (the HUD's ages); the positions only when a new scene state came.
+  int64_t upd, sm;
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    upd = updates;
+    sm = scene_msgs;
+  }
+  bool any = false, any_positions = false;
+  for (auto& kv : clients) {
+    kv.second.due = kv.second.updates_sent != upd || now - kv.second.last_frame >= std::chrono::seconds(1);
+    any = any || kv.second.due;
+    any_positions = any_positions || (kv.second.due && kv.second.scene_sent != sm);
+  }
+  if (!any) return;
   // Build the frame from the slots (copy out under the lock, compute outside it).
   json f;
   std::string mask;
   int64_t mv;
   {
     std::lock_guard<std::mutex> lock(mutex);
-    for (size_t i = 0; i < point_body.size(); ++i) {
-      const int b = point_body[i];
-      x_scene[i] = r[b] + q[b] * point_local[i];
-    }
+    if (any_positions)
+      for (size_t i = 0; i < point_body.size(); ++i) {
+        const int b = point_body[i];
+        x_scene[i] = r[b] + q[b] * point_local[i];
+      }
     mv = mask_version;
     mask.resize(active.size());
     for (size_t k = 0; k < active.size(); ++k) mask[k] = active[k] ? '1' : '0';
     f["t"] = "frame";
+    f["seq"] = ++frame_seq;
     f["version"] = scene_version;
     f["scene_age_ms"] = scene_utime > 0 ? 1e-3 * static_cast<double>(bus::now_utime() - scene_utime) : -1.0;
     f["sim_time"] = sim_time;
@@ -789,8 +862,22 @@ void Viewer::Impl::tick() {
       j["device_body"] = s.device_grab_body;   // > 0: the page drives this user's device
       j["device_grab_seq"] = s.device_grab_seq;
       if (s.have_device && s.have_mapping) {
-        const Vec3 p = to_disp(s.position_scale * s.device_m + s.offset);
+        // The device cursor (any device kind: its DEVICE_STATE through the coupler's mapping) and its
+        // reach: the distance to the body origin a press grabs when nothing names the body (the coupler's
+        // nearest-body rule).
+        const Vec3 x = s.position_scale * s.device_m + s.offset;
+        const Vec3 p = to_disp(x);
         j["proxy"] = {p.x(), p.y(), p.z()};
+        double best = std::numeric_limits<double>::infinity();
+        int nearest = 0;
+        for (int k = 1; k < model->nbodies; ++k) {
+          const double d2 = (r[k] - x).squaredNorm();
+          if (d2 < best) best = d2, nearest = k;
+        }
+        if (nearest > 0) {
+          j["reach"] = std::sqrt(best) * disp_scale;
+          j["reach_body"] = nearest;
+        }
       }
       if (s.uf_active) {
         // The grab point is a material point of the body: fixed in its frame from the grab on.
@@ -809,34 +896,45 @@ void Viewer::Impl::tick() {
     }
     f["users"] = us;
   }
-  frame_buf[0] = static_cast<float>(++frame_seq);
-  frame_buf[1] = static_cast<float>(point_body.size());
-  frame_buf[2] = 0;
-  frame_buf[3] = 0;
-  for (size_t i = 0; i < x_scene.size(); ++i) {
-    const Vec3 p = to_disp(x_scene[i]);
-    for (int a = 0; a < 3; ++a) frame_buf[4 + 3 * i + static_cast<size_t>(a)] = static_cast<float>(p[a]);
+  if (any_positions)
+    for (size_t i = 0; i < x_scene.size(); ++i) {
+      const Vec3 p = to_disp(x_scene[i]);
+      for (int a = 0; a < 3; ++a) frame_pos[3 * i + static_cast<size_t>(a)] = static_cast<float>(p[a]);
+    }
+  if (any_positions && with_quats) {   // x y z w per body, after the points
+    std::lock_guard<std::mutex> lock(mutex);
+    float* o = frame_pos.data() + 3 * x_scene.size();
+    for (int k = 0; k < model->nbodies; ++k, o += 4) {
+      const Quat& qk = q[static_cast<size_t>(k)];
+      o[0] = static_cast<float>(qk.x()), o[1] = static_cast<float>(qk.y()), o[2] = static_cast<float>(qk.z()),
+      o[3] = static_cast<float>(qk.w());
+    }
   }
-  const size_t bytes = frame_buf.size() * sizeof(float);
   net([&](auto& srv) {
-  for (auto& kv : clients) {
-    auto con = srv.get_con_from_hdl(kv.first);
-    if (!con || con->get_state() != websocketpp::session::state::open) continue;
-    if (con->get_buffered_amount() > opt.max_buffered_bytes) {   // slow tab: skip, do not queue
-      frames_dropped.fetch_add(1, std::memory_order_relaxed);
-      continue;
+    for (auto& kv : clients) {
+      Client& c = kv.second;
+      if (!c.due) continue;
+      auto con = srv.get_con_from_hdl(kv.first);
+      if (!con || con->get_state() != websocketpp::session::state::open) continue;
+      if (con->get_buffered_amount() > opt.max_buffered_bytes) {   // slow tab: skip, do not queue
+        frames_dropped.fetch_add(1, std::memory_order_relaxed);
+        continue;
+      }
+      json fj = f;
+      fj["you"] = c.user;
+      if (c.mask_sent != mv) fj["active"] = mask;   // the active region, when it changed (each reselection)
+      const bool with_positions = c.scene_sent != sm;
+      encode_frame(fj.dump(), with_positions ? frame_pos.data() : nullptr, with_positions ? frame_pos.size() : 0, msg_buf);
+      websocketpp::lib::error_code ec;
+      srv.send(kv.first, msg_buf.data(), msg_buf.size(), websocketpp::frame::opcode::binary, ec);
+      if (ec) continue;
+      c.mask_sent = mv;
+      c.updates_sent = upd;
+      if (with_positions) c.scene_sent = sm;
+      c.last_frame = now;
+      frames_sent.fetch_add(1, std::memory_order_relaxed);
+      frame_bytes.fetch_add(static_cast<int64_t>(msg_buf.size()), std::memory_order_relaxed);
     }
-    json fj = f;
-    fj["you"] = kv.second.user;
-    if (kv.second.mask_sent != mv) {   // the active region, when it changed (each reselection)
-      fj["active"] = mask;
-      kv.second.mask_sent = mv;
-    }
-    websocketpp::lib::error_code ec;
-    srv.send(kv.first, fj.dump(), websocketpp::frame::opcode::text, ec);
-    if (!ec) srv.send(kv.first, frame_buf.data(), bytes, websocketpp::frame::opcode::binary, ec);
-    if (!ec) frames_sent.fetch_add(1, std::memory_order_relaxed);
-  }
   });
 }
 
@@ -900,6 +998,7 @@ ViewerRefusals Viewer::refusals() const {
   return r;
 }
 int64_t Viewer::frames_sent() const { return impl_->frames_sent.load(); }
+int64_t Viewer::frame_bytes() const { return impl_->frame_bytes.load(); }
 int64_t Viewer::frames_dropped() const { return impl_->frames_dropped.load(); }
 int Viewer::clients() const { return impl_->nclients.load(); }
 int64_t Viewer::pointer_messages() const { return impl_->pointer_msgs.load(); }

@@ -3,17 +3,20 @@
 // Subscribes to the session's channels (scene state, user forces, device states, feedback, stats),
 // loads the scene once to know where every atom (or body) sits on its body, and serves on one port
 // (127.0.0.1 unless told otherwise; http, or https with a certificate), to holders of a token only, the
-// page (viewer/web), the scene as PDB (/scene.pdb) and one WebSocket (/ws): per frame (<= max_fps) a JSON text with the overlays and the HUD, then the atom
-// positions as Float32. A client whose socket still holds more than max_buffered_bytes gets no new
-// frame (dropped, counted): a slow tab never slows the bus handler or the other tabs.
-// The page is also a device: each tab takes a free user id; its pointer comes back as JSON and goes
-// out as lcmt_pointer (device metres, the coupler's mapping inverted) to that user's `browser` device.
-// The bus handler only copies messages into slots (one small mutex); frames are built on the server
-// thread.
+// page (viewer/web), the scene as PDB (/scene.pdb) and one WebSocket (/ws). A frame is one binary
+// message (<= max_fps, only when something shown changed, else once a second): the overlays and the HUD
+// as JSON, then the display points as Float32 when the scene moved. A client whose socket still holds
+// more than max_buffered_bytes gets no new frame (dropped, counted): a slow tab never slows the bus
+// handler or the other tabs.
+// The page is also a device: each tab with the pull token takes a free user id; its pointer comes back
+// as JSON and goes out as lcmt_pointer (device metres, the coupler's mapping inverted) to that user's
+// `browser` device. The bus handler only copies messages into slots (one small mutex); frames are built
+// on the server thread.
 #include <atomic>
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "haptree/bus/bus.hpp"
 #include "haptree/spatial.hpp"
@@ -29,6 +32,7 @@ struct ViewerOptions {
   std::string scene = "protein_like";
   int n = 64;
   std::string urdf;
+  std::vector<std::string> mesh_paths;   // where a URDF's package:// and relative mesh files are looked up
   int users = 2;                   // user ids 0..users-1 a tab may take (one coupler + browser device each)
   double max_fps = 30;
   size_t max_buffered_bytes = 1 << 20;
@@ -67,6 +71,7 @@ class Viewer {
   ViewerRefusals refusals() const;
   int64_t frames_sent() const;
   int64_t frames_dropped() const;
+  int64_t frame_bytes() const;      // WebSocket payload bytes of all frames sent
   int clients() const;
   int64_t pointer_messages() const;
 

@@ -162,6 +162,16 @@ def main():
         f1, t1 = int(ds(b, "frames") or 0), time.time()
         check(f1 > f0, f"frames advance in tab B ({f0} -> {f1})")
         print(f"tab B rendered {(f1 - f0) / (t1 - t0):.1f} frames/s (headless chromium, SwiftShader)", flush=True)
+        # every user's device cursor is drawn (user 0: the scripted device, grabbing; user 1: the idle
+        # browser device), and the HUD says "no grab" for the idle one
+        wait_for("the device cursors in tab B", lambda: int(ds(b, "cursors") or 0) >= 1, 30)
+        check(int(ds(b, "cursors") or 0) >= 1, f"device cursors drawn in tab B: {ds(b, 'cursors')} (JS-side count)")
+        hud = b.eval("document.getElementById('hudtab').innerText")
+        check("no grab" in hud and "-1.0 ms" not in hud, f"the HUD says 'no grab' for the idle user ({hud[-120:]!r})")
+        b.call("Page.bringToFront")
+        shot = os.path.join(out_dir, f"viewer_cursor_{tag}.png")
+        b.screenshot(shot)
+        check(os.path.getsize(shot) > 10000, f"cursor screenshot {shot} ({os.path.getsize(shot)} bytes)")
         before = launcher.forces_since(1, 0)
         check(all(f == 0.0 for f in before), f"user 1 idle before the drag (|f| {before[-3:]})")
 

@@ -166,8 +166,8 @@ def plain_tests(exe, out):
         rc = v.stop()
     check(rc == 0, f"viewer exit status {rc}")
     counts = v.summary()
-    # no token: 3 HTTP + 1 WebSocket; wrong: 1 query + 1 cookie + 1 WebSocket; origin: 2; watch pull: 3
-    check(counts == (4, 3, 2, 3), f"refusals counted (no token, wrong, origin, watch pull) = {counts}, expected (4, 3, 2, 3)")
+    # no token: 4 HTTP + 1 WebSocket; wrong: 1 query + 1 cookie + 1 WebSocket; origin: 2; watch pull: 3
+    check(counts == (5, 3, 2, 3), f"refusals counted (no token, wrong, origin, watch pull) = {counts}, expected (5, 3, 2, 3)")
     logged = [l for l in v.lines if "viewer: refused" in l]
     check(len(logged) == 4, f"each reason logged once for this client: {len(logged)} lines")
 
@@ -211,7 +211,8 @@ def tls_tests(exe, out):
         ctx = ssl.create_default_context(cafile=cert)
         st, _, body = http(v.base + "/?token=" + v.token, context=ctx)
         check(st == 200 and "vendor/ngl.js" in body, f"https GET with the token (Python ssl, verified): {st}")
-        st, hello, s = ws_status(f"wss://{v.host}:{v.port}/ws?token={v.token}", sslopt={"ca_certs": cert})
+        st, hello, s = ws_status(f"wss://{v.host}:{v.port}/ws?token={v.token}", sslopt={"ca_certs": cert},
+                                 origin=f"https://{v.host}:{v.port}")
         check(st == "open" and hello["role"] == "pull", f"wss:// with the token: {st}")
         if s:
             s.close()
