@@ -367,7 +367,7 @@ void Coupler::on_snapshot(const void* data, uint32_t size) {
   CouplingSnapshot& back = snap_box_.back();
   bus::from_lcmt(snap_msg_, back);
   back.source_instance = snap_msg_.instance_id;
-  // No subnormal value reaches the loop, whoever built the snapshot (issue 13.3; sim_server's are flushed).
+  // No subnormal value reaches the loop, whoever built the snapshot (sim_server's are flushed).
   if (const std::size_t k = flush_subnormals(back.values.data(), back.values.size()))
     c_.subnormals_flushed.fetch_add(static_cast<int64_t>(k), std::memory_order_relaxed);
   if (back.grabs.size() != 1 || validate_coupling_snapshot(back) != CouplingStatus::kOk || !ws_.fits(back)) {
@@ -552,7 +552,7 @@ void Coupler::publish_settings() {
 }
 
 int Coupler::run(const std::atomic<bool>& stop) {
-  // FTZ/DAZ in the loop (issue 13.3): no microcode assist for a subnormal operand on any CPU, whatever
+  // FTZ/DAZ in the loop: no microcode assist for a subnormal operand on any CPU, whatever
   // the snapshot holds (on_snapshot flushes them too) or the arithmetic makes.
   const ScopedFlushDenormals ftz;
   c_.ftz_daz.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
@@ -590,7 +590,7 @@ int Coupler::run(const std::atomic<bool>& stop) {
     if (since(kEpoch) > next + 0.01) next = since(kEpoch);   // overrun: do not try to catch up
     if (opt_.busy_wait) {
       // --busy-poll: a new device pose ends the wait; that iteration takes the place of the next tick, so
-      // the rate stays --rate-hz and the pose waits for no tick (pose-to-force latency, issue 15.1).
+      // the rate stays --rate-hz and the pose waits for no tick (lower pose-to-force latency).
       while (since(kEpoch) < next && !stop.load(std::memory_order_relaxed) && !(opt_.busy_poll && new_pose_waiting())) {
       }
     } else {

@@ -1,5 +1,5 @@
 #pragma once
-// Coupler: the paper's coupling loop as a class (STYLE.md §7.1), one per user/device.
+// Coupler: the paper's coupling loop as a class (main.cpp is a thin shell over it), one per user/device.
 // Keeps the latest complete coupling snapshot (LatestValue, swapped between two computations) and the
 // latest device pose; at --rate-hz computes f_u (virtual coupling), f_feed (coupling_forces on the
 // snapshot alone), maps f_feed to device units, guards it (ForceSafety: NaN, watchdog, clamp) and
@@ -63,7 +63,7 @@ struct CouplerCounters {
   std::atomic<int64_t> grab_feedbacks{0};         // feedback messages sent while grabbing
   std::atomic<int64_t> grab_watchdog_zeros{0};    // ... of which exactly zero because of the watchdog
   std::atomic<int64_t> last_snapshot_utime{0};    // system clock (µs) when the newest snapshot was accepted
-  std::atomic<int64_t> subnormals_flushed{0};     // subnormal values of accepted snapshots set to 0 (issue 13.3)
+  std::atomic<int64_t> subnormals_flushed{0};     // subnormal values of accepted snapshots set to 0
   std::atomic<bool> ftz_daz{false};               // run()'s thread computes with flush-to-zero + denormals-are-zero
 };
 
@@ -117,7 +117,7 @@ class Coupler {
   std::unique_ptr<bus::ShmWriter> shm_feedback_;
   std::unique_ptr<bus::ShmReader> shm_feedback_check_;   // 1 Hz look at our own segment: another writer?
   // LCM: our device's FEEDBACK channel is delivered only kWriterCheckWindow_s after each stats tick (our
-  // own messages would otherwise wake the handler thread at the loop rate; issue 15.1).
+  // own messages would otherwise wake the handler thread at the loop rate).
   bus::RawSubscription* feedback_check_ = nullptr;
   double feedback_check_until_s_ = -1;
   static constexpr double kWriterCheckWindow_s = 0.02;

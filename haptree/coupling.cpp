@@ -329,7 +329,7 @@ void make_coupling_snapshot(const Model& model, const Data& data, const std::vec
     V.resize(static_cast<std::size_t>(val));
   }
 
-  // 5. No subnormals (issue 13.3): O(snapshot size), once per snapshot.
+  // 5. No subnormals (see coupling.hpp): O(snapshot size), once per snapshot.
   if (flush_tiny) flush_subnormals(V.data(), V.size());
 }
 

@@ -1,9 +1,10 @@
-// Inverse dynamics residual r = τ − ID(q, q̇, q̈) in a chosen precision S, kinematics included,
-// from the model's data and the state as given (RNEA at the joint points r_k, world axes, the
-// conventions of dca.cpp). forward_dynamics uses S = long double for Refinement::kExtended; the
-// tests instantiate it with __float128 for their quad-precision reference (tests/support). Written
-// with explicit formulas (Rodrigues, quaternion matrix) so that S needs only + − × / and the three
-// functions of ScalarFunctions.
+/// @file
+/// Inverse dynamics residual r = τ − ID(q, q̇, q̈) in a chosen precision S, kinematics included,
+/// from the model's data and the state as given (RNEA at the joint points r_k, world axes, the
+/// conventions of dca.cpp). forward_dynamics uses S = long double for Refinement::kExtended; the
+/// tests instantiate it with __float128 for their quad-precision reference (tests/support). Written
+/// with explicit formulas (Rodrigues, quaternion matrix) so that S needs only + − × / and the three
+/// functions of ScalarFunctions.
 #pragma once
 
 #include <cmath>
@@ -13,21 +14,26 @@
 
 namespace haptree {
 
+/// sin, cos and sqrt in scalar type S; specialised for types std:: does not cover (tests: __float128).
 template <class S>
-struct ScalarFunctions {   // specialised for types std:: does not cover (tests: __float128)
-  static S sin(S x) { return std::sin(x); }
-  static S cos(S x) { return std::cos(x); }
-  static S sqrt(S x) { return std::sqrt(x); }
+struct ScalarFunctions {
+  static S sin(S x) { return std::sin(x); }    ///< sine in S
+  static S cos(S x) { return std::cos(x); }    ///< cosine in S
+  static S sqrt(S x) { return std::sqrt(x); }  ///< square root in S
 };
 
+/// Per-body scratch of inverse_dynamics_residual in scalar type S, sized once.
 template <class S>
 struct InverseDynamicsScratch {
-  using V3 = Eigen::Matrix<S, 3, 1>;
-  using M3 = Eigen::Matrix<S, 3, 3>;
-  using V6 = Eigen::Matrix<S, 6, 1>;
-  std::vector<M3> R;
-  std::vector<V3> d;
-  std::vector<V6> v, a, f;
+  using V3 = Eigen::Matrix<S, 3, 1>;   ///< 3-vector in S
+  using M3 = Eigen::Matrix<S, 3, 3>;   ///< 3×3 matrix in S
+  using V6 = Eigen::Matrix<S, 6, 1>;   ///< spatial vector in S
+  std::vector<M3> R;   ///< (nbodies) body rotations
+  std::vector<V3> d;   ///< (nbodies) offsets from the parent's origin
+  std::vector<V6> v;   ///< (nbodies) spatial velocities
+  std::vector<V6> a;   ///< (nbodies) spatial accelerations
+  std::vector<V6> f;   ///< (nbodies) body forces
+  /// Sizes every array for `nbodies` bodies (allocates).
   void resize(int nbodies) {
     R.resize(nbodies);
     d.resize(nbodies);
@@ -35,11 +41,12 @@ struct InverseDynamicsScratch {
     a.resize(nbodies);
     f.resize(nbodies);
   }
+  /// Whether resize(nbodies) was done.
   bool sized(int nbodies) const { return f.size() == static_cast<std::size_t>(nbodies); }
 };
 
-// r (size nv, any scalar) = τ − ID(q, q̇, q̈) for a State st (q, qd, tau, f_ext); q̈ may be double
-// or wider. No allocation when `w` is sized for the model.
+/// r (size nv, any scalar) = τ − ID(q, q̇, q̈) for a State st (q, qd, tau, f_ext); q̈ may be double
+/// or wider. No allocation when `w` is sized for the model.
 template <class S, class StateT, class Qdd, class Out>
 void inverse_dynamics_residual_in(const Model& m, const StateT& st, const Qdd& qdd,
                                   InverseDynamicsScratch<S>& w, Out& r) {

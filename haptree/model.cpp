@@ -148,7 +148,7 @@ void classify_clusters(Model& m) {
     const int R = m.cluster_root[t.attached_body(node, 0)];
     // A body welded to the ground counts even alone: in inertia form its pin makes it exactly
     // immovable, where the difference formula leaves a residual mobility ε·|Φ| (large at a far
-    // handle: 1e-6 at 10⁶ m, issue 14).
+    // handle: 1e-6 at 10⁶ m).
     const bool welded_to_ground =
         R > 0 && m.joint_type[R] == JointType::kFixed && m.parent[R] == 0;
     bool same = R > 0 && (cluster_size[R] >= 2 || welded_to_ground);

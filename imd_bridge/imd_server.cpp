@@ -31,7 +31,7 @@ namespace {
 // message header changes.
 template <class T>
 void stamp_message(T& msg) {
-  static const int64_t instance_id = bus::new_instance_id();   // this IMD server's origin (issue 11)
+  static const int64_t instance_id = bus::new_instance_id();   // this IMD server's origin: consumers follow one producer per channel
   bus::stamp(msg, instance_id);
 }
 

@@ -22,6 +22,7 @@ PKGS=(
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*), viewer tokens
   libssl-dev openssl                            # viewer over https/wss; openssl s_client in its TLS test
+  doxygen                                       # API reference (CMake target docs; CTest label docs)
 )
 missing=()
 for p in "${PKGS[@]}"; do

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Device pose -> feedback force latency through the real processes (issue 15.1): coupler + device_bridge
+# Device pose -> feedback force latency through the real processes: coupler + device_bridge
 # (scripted device, 1 kHz), over shared memory and over udpm, without and with a background load
 # (`stress-ng --cpu 1`), for each real-time option set below. Latency = device_bridge publishing
 # DEVICE_STATE seq k -> its receiving the first FEEDBACK that echoes k (bridge's steady clock,

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Measures the coupler watchdog's false trips on this machine for several --stale-after-s values
-# (issue 11, defect 3), with the by-hand commands of docs/processes.md: sim_server, coupler (default
+# with the by-hand commands of docs/processes.md: sim_server, coupler (default
 # busy-wait pacing at 10 kHz) and device_bridge as separate processes over udpm ttl=0, device link over
 # shared memory. udpm stays inside a private network namespace (`unshare -n`, multicast route on lo): needs
 # root. The scripted user grabs the last body of protein_like(64) and holds the pull for the whole run;

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # CPU time and context switches of every coupler thread in a coupler + device_bridge session over udpm
 # (inside `unshare -n`, multicast on lo only), read from /proc/PID/task/* near the end of the run: what a
-# handler-thread path costs (e.g. the second-writer check on the coupler's own FEEDBACK, issue 15.1),
+# handler-thread path costs (e.g. the second-writer check on the coupler's own FEEDBACK),
 # independent of the latency noise of a loaded machine. The bridge's pose->force latency line is printed too.
 #   scripts/measure_thread_cost.sh [BUILD_DIR] [DURATION_S] ["COUPLER OPTIONS"] ["BRIDGE OPTIONS"]
 # BUILD_DIR needs coupler/coupler and device_bridge/device_bridge. Needs root (unshare).

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Network faults, measured (issue 15.2; docs/network_faults.md). Two network namespaces joined by a veth
+# Network faults, measured (docs/network_faults.md). Two network namespaces joined by a veth
 # pair stand for two hosts: sim_server on the "server" (ns A, 10.213.x.1), coupler + device_bridge +
 # lcm-logger on the "workstation" (ns B, 10.213.x.2), LCM udpm multicast (ttl 1) across the veth. Nothing
 # leaves the machine: the namespaces, the pair and their addresses exist only while this runs.

@@ -46,7 +46,7 @@ order, numbers printed with %.17g (null if not finite). Errors: one line on stde
 non-finite accelerations are an error too (the JSON is still printed).
 
 Example: haptree-fd --scene chain --n 16 --gravity 0,0,-9.81
-         haptree-fd --urdf robot.urdf --state state.json
+         haptree-fd --urdf tests/data/urdf/arm.urdf --state examples/arm_state.json
 )";
 
 }  // namespace

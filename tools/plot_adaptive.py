@@ -2,7 +2,7 @@
 """Log-log plots of step time against error from adaptive_sweep's CSV (one PNG per scene).
 
 Each PNG has two panels: MEAN step time (thread CPU, µs, every selection included — what a user
-pays on average; issue 13.1) against (left) the mean neglected acceleration metric (the error
+pays on average) against (left) the mean neglected acceleration metric (the error
 estimate) and (right) the RMS joint deviation from the full-DCA run after the fixed simulated time. Budget settings are circles labelled with k, threshold settings are
 triangles labelled with eps; the dashed line is full DCA.
 

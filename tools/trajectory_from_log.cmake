@@ -1,4 +1,4 @@
-# trajectory_from_log: an LCM log's scene states -> DCD or multi-model PDB (issue 12).
+# trajectory_from_log: an LCM log's scene states -> DCD or multi-model PDB.
 find_package(CLI11 REQUIRED)
 find_package(spdlog REQUIRED)
 add_executable(trajectory_from_log ${CMAKE_CURRENT_LIST_DIR}/trajectory_from_log.cpp)

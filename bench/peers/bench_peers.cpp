@@ -266,7 +266,7 @@ int main(int argc, char** argv) {
   const bool diag_explicit =
       std::find(engines.begin(), engines.end(), "mujoco_diaginertia") != engines.end();
   // Every engine by default: haptree (the library default, one refinement step), haptree_plain
-  // (the single pass, issue 13.4's speed figure) and haptree_exact (kExtended) side by side.
+  // (the single pass) and haptree_exact (kExtended) side by side.
   if (engines.empty())
     for (auto& [name, f] : all) engines.push_back(name);
   for (const char* p : {"mujoco", "simbody", "bullet"})

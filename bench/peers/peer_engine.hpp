@@ -25,7 +25,7 @@ class PeerEngine {
 
 // Every factory throws std::runtime_error with the reason when the model cannot be translated.
 std::unique_ptr<PeerEngine> make_haptree_engine(const Model& model);
-// forward_dynamics with set_dca_threads(…, 0): parallel passes where they pay (issue 13.4).
+// forward_dynamics with set_dca_threads(…, 0): parallel passes where they pay.
 std::unique_ptr<PeerEngine> make_haptree_auto_engine(const Model& model);
 std::unique_ptr<PeerEngine> make_haptree_plain_engine(const Model& model);
 std::unique_ptr<PeerEngine> make_haptree_exact_engine(const Model& model);

@@ -9,7 +9,7 @@ namespace {
 class HaptreeEngine final : public PeerEngine {
  public:
   // threads: set_dca_threads (1 = serial; 0 = automatic, "haptree_auto").
-  // refine: Data::refine (issue 14.2): "haptree" is the library's default (kDouble, one refinement
+  // refine: Data::refine: "haptree" is the library's default (kDouble, one refinement
   // step with the residual in double), "haptree_plain" the single pass (kOff), "haptree_exact" the
   // residual in long double from q (kExtended).
   HaptreeEngine(const Model& m, int threads, Refinement refine = Refinement::kDouble)

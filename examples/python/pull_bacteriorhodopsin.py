@@ -3,10 +3,10 @@
 force-field energy and the active DOF.
 
 The loop is sim_server's molecular step (docs/processes.md), written with the Python bindings:
-every --reselect-every steps the rigid regions are cleared, the active region is selected and the
-force field told which bodies now move together; every step the body poses are updated, the force
-field overwrites state.f_ext, the pull (a spring from the atom to a target --pull-nm away, radially
-outwards) is added on the atom, and one adaptive step runs.
+every --reselect-every steps the active region is selected; every step the body poses are updated,
+the force field overwrites state.f_ext (it finds by itself which bodies moved together since the last
+step and evaluates only the pairs between them), the pull (a spring from the atom to a target
+--pull-nm away, radially outwards) is added on the atom, and one adaptive step runs.
 
     PYTHONPATH=build/python /usr/bin/python3 examples/python/pull_bacteriorhodopsin.py --out pull.png
 """
@@ -81,9 +81,7 @@ def main(argv=None):
     t1 = time.process_time()
     for i in range(a.steps):
         if i % a.reselect_every == 0:
-            sc.clear_rigid_regions()
             haptree.select_active_region(m, data, state, ad, select)
-            sc.set_rigid_regions(ad)
         haptree.update_all_body_poses(m, data, ad)
         E = sc.compute(data, state)              # overwrites state.f_ext with the force field
         x = sc.atom_position(data, atom)

@@ -1,4 +1,4 @@
-// Authenticated sessions (issue 15.3): with a session key, every message on the bus carries a trailer
+// Authenticated sessions (docs/sessions.md): with a session key, every message on the bus carries a trailer
 //   [magic "HTA1" 4][key id 4][sender id 4][seq 8][MAC 32]           (52 bytes, integers big-endian)
 // appended after its LCM bytes. MAC = HMAC-SHA512-256 (libsodium crypto_auth) under the session key
 // over (channel, NUL, message bytes, the first 20 trailer bytes): a message moved to another channel,

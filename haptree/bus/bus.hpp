@@ -1,6 +1,6 @@
 // haptree::bus::Bus — one lcm::LCM instance, typed subscriptions that decode raw bytes themselves
 // (never throw out of a handler, count what they reject), plain-words set-up errors, and a handler thread.
-// STYLE.md §7.6. LCM 1.3.1 offers member-function subscriptions only; Subscription<T> is that member.
+// LCM 1.3.1 offers member-function subscriptions only; Subscription<T> is that member.
 #pragma once
 
 #include <lcm/lcm-cpp.hpp>

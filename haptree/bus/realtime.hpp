@@ -1,4 +1,4 @@
-// Real-time options of the processes (issue 15.1): SCHED_FIFO, mlockall, CPU affinity, timer slack.
+// Real-time options of the processes: SCHED_FIFO, mlockall, CPU affinity, timer slack.
 // apply_realtime() applies what the system permits and says, in plain words, what it refused and why;
 // it never fails the process (a refused option means "continue as an ordinary process").
 //   RealtimeOptions rt; add_realtime_options(app, rt);            // realtime_cli.hpp

@@ -37,15 +37,19 @@ inline void add_device_limit_options(CLI::App& app, DeviceLimitOptions& o, bool 
 
 // Checks the gains (in place) against the device and the passivity bound. Returns false after printing
 // why when it refuses; with o.clamp it lowers what it can, says so, and returns true.
+// `reported`: the limits an open device reported (Device::describe()); they take precedence over the
+// --device-model table entry, which stays the fallback for what the device does not report.
 inline bool enforce_device_limits(const DeviceLimitOptions& o, double& stiffness, double& damping,
                                   double position_scale, double force_scale, double& max_force_n,
-                                  double rate_hz, const char* who) {
-  const DeviceInfo* dev = find_device_info(o.model);
-  if (!dev) {
+                                  double rate_hz, const char* who, const DeviceDescription* reported = nullptr) {
+  const DeviceInfo* table = find_device_info(o.model);
+  if (!table) {
     std::fprintf(stderr, "%s: --device-model '%s' is not known; known: %s\n", who, o.model.c_str(),
                  device_model_names().c_str());
     return false;
   }
+  const DeviceInfo merged = reported ? with_reported_limits(*table, *reported) : *table;
+  const DeviceInfo* dev = &merged;
   CouplingGains g;
   g.stiffness = stiffness;
   g.damping = damping;

@@ -112,6 +112,27 @@ DeviceSpec to_device_spec(const DeviceInfo& info) {
   return s;
 }
 
+DeviceInfo with_reported_limits(const DeviceInfo& fallback, const DeviceDescription& r) {
+  DeviceInfo d = fallback;
+  std::string which;
+  auto take = [&](double v, double& field, const char* name) {
+    if (!std::isfinite(v)) return;
+    field = v;
+    which += (which.empty() ? "" : ", ") + std::string(name);
+  };
+  take(r.max_force_n, d.max_force_n, "max force");
+  take(r.max_continuous_force_n, d.max_continuous_force_n, "continuous force");
+  take(r.max_torque_nm, d.max_torque_nm, "max torque");
+  take(r.max_stiffness_n_per_m, d.max_stiffness_n_per_m, "max stiffness");
+  take(r.max_damping_n_s_per_m, d.max_damping_n_s_per_m, "max damping");
+  take(r.workspace_radius_m, d.workspace_radius_m, "workspace radius");
+  if (which.empty()) return d;
+  if (!r.model.empty()) d.model = r.model;
+  d.source = which + " reported by the device at open; the rest from --device-model " + fallback.name + " (" +
+             fallback.source + ")";
+  return d;
+}
+
 double device_stiffness_n_per_m(const CouplingGains& g) {
   return g.stiffness * g.force_scale * g.position_scale;
 }

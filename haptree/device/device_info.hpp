@@ -40,6 +40,11 @@ std::string device_model_names();
 // The DeviceSpec a driver of this device would publish (unknown fields keep DeviceSpec's defaults).
 DeviceSpec to_device_spec(const DeviceInfo& info);
 
+// The limits a device reported at open (DeviceDescription, NaN = not reported) over the table entry
+// `fallback` (--device-model): each reported limit replaces the table's, the others stay, and model and
+// source say which came from where. The physical damping b always stays the fallback's (no device reports it).
+DeviceInfo with_reported_limits(const DeviceInfo& fallback, const DeviceDescription& reported);
+
 // The coupler's gains, in its own units (CouplerOptions), and the two periods of the loop.
 struct CouplingGains {
   double stiffness = 0;          // k_s, scene force / scene length

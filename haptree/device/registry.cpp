@@ -6,6 +6,8 @@
 
 #include "haptree/bus/channels.hpp"
 #include "haptree/device/browser.hpp"
+#include "haptree/device/forcedimension.hpp"
+#include "haptree/device/openhaptics.hpp"
 #include "haptree/device/replay.hpp"
 #include "haptree/device/simulated.hpp"
 
@@ -78,6 +80,8 @@ struct Registry {
         throw std::invalid_argument("device 'replay' needs options log=<file.lcm> and channel=<name>");
       return std::make_unique<ReplayDevice>(c.spec, log, channel, option_double(c, "loop", 0) != 0);
     };
+    factories["openhaptics"] = make_openhaptics_device;
+    factories["forcedimension"] = make_forcedimension_device;
     factories["browser"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
       if (!c.bus) throw std::invalid_argument("device 'browser' reads the viewer's pointer from the bus: no bus given");
       BrowserParams p;

@@ -1,6 +1,7 @@
 // Devices by name, so real SDKs plug in without the processes knowing them:
 //   haptree::device::register_device("phantom", [](const DeviceConfig& c) { return std::make_unique<...>(c); });
-// Built in: "scripted", "virtual_hand", "replay", "browser" (options below).
+// Built in: "scripted", "virtual_hand", "replay", "browser", and the real devices "openhaptics" and
+// "forcedimension" (vendor libraries loaded at run time; options below; docs/devices.md).
 #pragma once
 
 #include <functional>
@@ -26,6 +27,9 @@ struct DeviceConfig {
   //  replay: log (path, required), channel (required), loop (0/1)
   //  browser (the mouse in the viewer's page, needs bus): fallback (scripted|none, default none; the
   //    scripted options above apply to it), timeout_s, smoothing_s, switch_s
+  //  real devices: axes (vendor axes -> haptree's, AxisMap; each family documents its default), lib
+  //    (the vendor library's path or name), and openhaptics: name (device name; default device),
+  //    forcedimension: id (device index; default the first device)
   std::map<std::string, std::string> options;
   // Set by device_bridge for devices fed from the bus (browser): the bus, this device's id, the suffix.
   bus::Bus* bus = nullptr;

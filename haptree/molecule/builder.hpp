@@ -1,4 +1,4 @@
-// Ideal-geometry builders for test molecules (own code; geometry as shared/data/tools/build_models.py).
+// Ideal-geometry builders for test molecules (ideal bond lengths, angles and torsions, written here).
 #pragma once
 
 #include "haptree/molecule/structure.hpp"

@@ -1,4 +1,4 @@
-// "Model B" force field (shared/data/README.md): proper torsions + Coulomb with distance-dependent
+// "Model B" force field (docs/molecules.md): proper torsions + Coulomb with distance-dependent
 // dielectric ε(r) = 4r (r in Å) + Lennard-Jones (Lorentz–Berthelot), both multiplied by
 // S(x) = 1 − 10x³ + 15x⁴ − 6x⁵, x = (r − r_on)/(r_off − r_on), zero beyond r_off; 1-2/1-3 pairs
 // excluded; 1-4 pairs unswitched and scaled (Coulomb 1/1.2, LJ ε 0.5).

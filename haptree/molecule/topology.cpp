@@ -179,8 +179,8 @@ Topology build_topology(const Structure& s, const ForceFieldParams& p, const Top
   t.hydrogens_present = s.has_hydrogens();
   if (!t.hydrogens_present && opt.require_hydrogens)
     throw StructureError(s.path + ": the structure has no hydrogen atoms; the all-atom force field "
-                                  "needs them (prepare the file first, e.g. with PDBFixer as in "
-                                  "shared tools/prepare_bR.py)");
+                                  "needs them (add hydrogens first, e.g. with PDBFixer or pdb2pqr, "
+                                  "or set TopologyOptions::require_hydrogens = false for a heavy-atom model)");
   std::set<std::pair<int, int>> bonds;
   auto add_bond = [&](int a, int b) { bonds.emplace(std::min(a, b), std::max(a, b)); };
   const auto& R = s.residues;

@@ -1,4 +1,4 @@
-// Torsion-angle model (MOLECULAR.md §5): rigid groups of atoms between rotatable bonds, as a tree
+// Torsion-angle model (docs/molecules.md): rigid groups of atoms between rotatable bonds, as a tree
 // of revolute joints rooted at the N-terminal (first-atom) body of every bonded segment.
 #pragma once
 

@@ -184,7 +184,7 @@ def test_adaptive_step_report_and_full_equivalence():
     random_state(model, state)
     full = haptree.State(model)
     full.q, full.qd, full.tau = state.q, state.qd, state.tau
-    # With every DOF active the hybrid pass is the full DCA (ALGORITHMS §6): same q̈ as forward_dynamics.
+    # With every DOF active the hybrid pass is the full DCA (docs/algorithms.md §6): same q̈ as forward_dynamics.
     haptree.select_active_region(model, data, state, ad, opts)
     qdd_h = haptree.adaptive_forward_dynamics(model, data, state, ad).copy()
     qdd_f = haptree.forward_dynamics(model, haptree.Data(model), full)

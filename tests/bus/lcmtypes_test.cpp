@@ -1,4 +1,4 @@
-// Tests for lcmtypes/*.lcm (STYLE.md §7.5 rules) and haptree/bus/wire.hpp, snapshot.hpp.
+// Tests for lcmtypes/*.lcm (schema_version first, fixed-size fields where possible) and haptree/bus/wire.hpp, snapshot.hpp.
 #include <gtest/gtest.h>
 
 #include <random>
@@ -123,7 +123,7 @@ TYPED_TEST(LcmTypes, RoundTripIsByteExactAndSchemaAtByte8) {
   ASSERT_TRUE(peek_schema_version(bytes.data(), bytes.size(), &schema));
   EXPECT_EQ(schema, TypeParam::SCHEMA_VERSION);
   // Schema 2 added instance_id; FEEDBACK's schema 3 added the instance ids of the snapshot and device state
-  // it answers (replay across restarts, issue 15.5).
+  // it answers (replay across restarts).
   EXPECT_EQ(schema, (std::is_same_v<TypeParam, lcmt_feedback> ? 3 : 2));
   // instance_id right after utime: readable at byte 20 without decoding (origin checks, duplicate writers).
   int64_t inst = 0;

@@ -210,7 +210,7 @@ void write_feedback_and_die(const std::string& channel) {
   ASSERT_TRUE(WIFSIGNALED(st));
 }
 
-// Issue 11, defect 1: a new reader (a new device_bridge) must not hand out the last FEEDBACK of a writer
+// A new reader (a new device_bridge) must not hand out the last FEEDBACK of a writer
 // that was killed, and a reader that was already open must drop it as soon as the writer is gone.
 TEST(ShmChannel, NewReaderNeverSeesADeadSessionsFeedback) {
   TempChannel ch("dead");
@@ -251,7 +251,7 @@ TEST(ShmChannel, MessagesOlderThanTheMaxAgeAreDropped) {
   EXPECT_EQ(r.writer_pid(), ::getpid());
 }
 
-// Issue 11, defect 8: segments do not outlive their writers.
+// Segments do not outlive their writers.
 TEST(ShmChannel, WriterUnlinksItsSegmentAndOneLiveWriterPerChannel) {
   TempChannel ch("unlink");
   {

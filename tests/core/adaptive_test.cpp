@@ -277,7 +277,7 @@ TEST(Adaptive, PosesAfterAStepAreThoseOfTheNewConfiguration) {
 }
 
 
-// Error-controlled reselection (issue 13.1): counts of selections and the exact check, no times.
+// Error-controlled reselection: counts of selections and the exact check, no times.
 struct PullRun {
   std::shared_ptr<const Model> m;
   State st;

@@ -30,7 +30,7 @@ TEST(AssemblyTree, PreOrderAndJointOwnersOnUpRegion) {
   for (int node = 1; node < t.nnodes(); ++node) EXPECT_LT(t.up[node], node);
   for (int k = 0; k < m->nbodies; ++k) {
     const auto region = t.up_region(t.leaf_of_body[k]);
-    // Every joint incident to body k is owned by a node of k's up-region (ALGORITHMS §4.5).
+    // Every joint incident to body k is owned by a node of k's up-region (docs/algorithms.md §4.5).
     std::vector<int> joints;
     if (k > 0) joints.push_back(k);
     for (int c : m->children[k]) joints.push_back(c);

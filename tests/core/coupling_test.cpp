@@ -1,4 +1,4 @@
-// O(log n) force-feedback coupling (ALGORITHMS §11–§12, §15.9): f_feed computed from the snapshot
+// O(log n) force-feedback coupling (docs/algorithms.md §11–§12): f_feed computed from the snapshot
 // alone against (1) a full DCA pass with the user forces added to the grabbed bodies' f_ext and
 // (2) the long-double oracle `I a + v ×* I v − f_u`; nodes read; joint owners; β_ext recovery;
 // no allocation per call; statuses; virtual coupling and unit mapping.
@@ -140,7 +140,7 @@ double force_error_bound(const Model& m, const Data& d, const State& st) {
          std::max(kH, kI) / kH;
 }
 
-// Tolerance (issue 14.3): f_feed and the full pass are two backward-stable solutions of one
+// Tolerance: f_feed and the full pass are two backward-stable solutions of one
 // system, so each is within B of the exact one and they differ by ≤ 2B, with
 // B = c·(n + 6)·ε·max(κ(H), κ_I)·cancel (tests/support/oracle.hpp): forces, unlike q̈, include the
 // constrained directions, whose systems are as conditioned as the bodies' spatial inertias
@@ -248,7 +248,7 @@ INSTANTIATE_TEST_SUITE_P(
              (info.param.max_children ? "_reduced" : "");
     });
 
-// Issue 13.3: the Φ columns of long segments of a 65 536-chain decay to subnormal values (down to
+// The Φ columns of long segments of a 65 536-chain decay to subnormal values (down to
 // 5e-324), which cost Intel CPUs ~100 cycles per operand in coupling_forces. Snapshots are built
 // without them; the feedback is unchanged (each flushed value moves by < 2⁻¹⁰²²) and still matches
 // a full pass with the user force applied, at the tolerance of CouplingVsFullPass.
@@ -401,7 +401,7 @@ TEST(Coupling, HybridBodiesMatchHybridPassAndLockedOracle) {
     }
   }
   EXPECT_GT(rigid_siblings, 0);   // the test did exercise composite rigid siblings
-  // Tolerance (issue 14.3): the force bound B of the full model (n, κ): the reduced system's
+  // Tolerance: the force bound B of the full model (n, κ): the reduced system's
   // data come from all bodies and ‖H_aa⁻¹‖ ≤ ‖H⁻¹‖ (interlacing, see
   // tests/stress/origin_independence_test.cpp); the smallest B over the models is asserted.
   EXPECT_LE(worst_full, 2 * hybrid_bound);

@@ -1,4 +1,4 @@
-// Parallel DCA passes (issue 13.4, set_dca_threads): the schedule covers every node once, the
+// Parallel DCA passes (set_dca_threads): the schedule covers every node once, the
 // result is bit-for-bit the serial one, and node-count models of the speed-up (no timings).
 #include <gtest/gtest.h>
 

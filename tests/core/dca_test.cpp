@@ -1,4 +1,4 @@
-// DCA forward dynamics against closed forms and the long-double CRBA/RNEA oracle (ALGORITHMS §15).
+// DCA forward dynamics against closed forms and the long-double CRBA/RNEA oracle (tests/support/oracle.hpp).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -120,7 +120,7 @@ INSTANTIATE_TEST_SUITE_P(
              (info.param.mixed ? "_mixed" : "") + (info.param.free_root ? "_free" : "");
     });
 
-// Data::refine (issue 14.2; kDouble by default): one step of iterative refinement, r = τ − ID(q̈),
+// Data::refine (kDouble by default): one step of iterative refinement, r = τ − ID(q̈),
 // q̈ += H⁻¹ r (H⁻¹ by the bias half of the assembly over the pass's factors). The
 // inverse dynamics is backward stable, so the refined q̈ is the exact solution of a problem
 // perturbed by O(n·ε) and must meet the backward-stability bound c·n·ε·κ₂(H)·cancel
@@ -467,7 +467,7 @@ TEST(Model, FingerprintChangesWithTheModel) {
 }
 
 
-// The 1-DOF joint kernel (structured Tᵀ Φ̂ T and padded blocks, issue 13.4) against the definition
+// The 1-DOF joint kernel (structured Tᵀ Φ̂ T and padded blocks) against the definition
 // of W = T (Tᵀ Φ̂ T)⁻¹ Tᵀ, independent of the oracle: W S = 0 and W Φ̂ W = W on every mobility-form
 // node with a revolute or prismatic joint of a tree with all joint types.
 TEST(DcaKernels, OneDofWIsTheConstraintSpaceInverse) {

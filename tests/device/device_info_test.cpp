@@ -145,3 +145,29 @@ TEST(DeviceInfo, ClampedGainsPassForEveryDeviceOverASweep) {
           EXPECT_LE(c.clamped.damping, b);
         }
 }
+
+TEST(DeviceInfo, LimitsReportedByTheDeviceReplaceTheTableAndTheRestStays) {
+  const DeviceInfo* touch = find_device_info("touch");
+  ASSERT_NE(touch, nullptr);
+  DeviceDescription r;
+  r.model = "Touch (reported)";
+  r.max_force_n = 2.5;            // below the table's 3.3 N
+  r.max_stiffness_n_per_m = 300;  // below the table's 400 N/m
+  const DeviceInfo m = with_reported_limits(*touch, r);
+  EXPECT_EQ(m.max_force_n, 2.5);
+  EXPECT_EQ(m.max_stiffness_n_per_m, 300);
+  EXPECT_EQ(m.max_damping_n_s_per_m, touch->max_damping_n_s_per_m);   // not reported: the table's
+  EXPECT_EQ(m.model, "Touch (reported)");
+  EXPECT_TRUE(contains(m.source, "max force, max stiffness reported by the device")) << m.source;
+  // The gain check now refuses what the table allowed: K = 350 N/m passes the table's 400, not the device's 300.
+  CouplingGains g = defaults();
+  g.stiffness = 70;               // K = 70 · 0.5 · 10 = 350 N/m
+  g.max_force_n = 2.0;
+  g.physical_damping_n_s_per_m = 10;
+  EXPECT_TRUE(check_gains(*touch, g).ok());
+  const GainCheck c = check_gains(m, g);
+  ASSERT_EQ(c.problems.size(), 1u);
+  EXPECT_TRUE(contains(c.problems[0], "exceeds 300 N/m")) << c.problems[0];
+  // Nothing reported: the table entry unchanged.
+  EXPECT_EQ(with_reported_limits(*touch, DeviceDescription{}).source, touch->source);
+}

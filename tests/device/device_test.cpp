@@ -7,6 +7,8 @@
 #include <cstdio>
 
 #include "haptree/bus/wire.hpp"
+#include "haptree/device/axes.hpp"
+#include "haptree/device/buttons.hpp"
 #include "haptree/device/convert.hpp"
 #include "haptree/device/registry.hpp"
 #include "haptree/device/replay.hpp"
@@ -234,6 +236,69 @@ TEST(Registry, BuiltInsPlugInsAndErrors) {
   EXPECT_TRUE(unregister_device("test_plugin"));
   EXPECT_FALSE(unregister_device("test_plugin"));
   EXPECT_THROW(make_device("test_plugin", DeviceConfig{}), std::invalid_argument);
+}
+
+
+TEST(AxisMap, ParsesSignedPermutationsAndRefusesMirrorsAndTypos) {
+  const AxisMap id = AxisMap::parse("x,y,z");
+  EXPECT_TRUE(id.matrix().isIdentity());
+  // Force Dimension (x towards the user, y right, z up) onto haptree (x right, y up, z towards the user).
+  const AxisMap fd = AxisMap::parse("y,z,x");
+  const Vec3 towards_user(1, 0, 0), right(0, 1, 0), up(0, 0, 1);
+  EXPECT_TRUE(fd.to_frame(towards_user).isApprox(Vec3(0, 0, 1)));
+  EXPECT_TRUE(fd.to_frame(right).isApprox(Vec3(1, 0, 0)));
+  EXPECT_TRUE(fd.to_frame(up).isApprox(Vec3(0, 1, 0)));
+  const Vec3 f(0.3, -1.2, 2.5);
+  EXPECT_TRUE(fd.to_vendor(fd.to_frame(f)).isApprox(f));
+  const AxisMap s = AxisMap::parse("-x,y,-z");
+  EXPECT_TRUE(s.to_frame(Vec3(1, 2, 3)).isApprox(Vec3(-1, 2, -3)));
+  EXPECT_EQ(s.str(), "-x,y,-z");
+  // An orientation: a quarter turn about the vendor's up (z) is a quarter turn about haptree's up (y).
+  const Mat3 Rz = Eigen::AngleAxisd(M_PI / 2, Vec3::UnitZ()).toRotationMatrix();
+  EXPECT_TRUE(fd.to_frame(Rz).isApprox(Eigen::AngleAxisd(M_PI / 2, Vec3::UnitY()).toRotationMatrix()));
+  for (const char* bad : {"x,y", "x,y,z,", "x,x,z", "x,y,w", "-x,y,z", "y,x,z", "", "x;y;z"})
+    EXPECT_THROW(AxisMap::parse(bad), std::invalid_argument) << bad;
+}
+
+TEST(ButtonStage, ClutchFreezesTheProxyAndIndexesTheWorkspace) {
+  ButtonStage b;
+  DeviceReading r;
+  auto step = [&](const Vec3& x, int32_t buttons) {
+    r.position_m = x;
+    r.linear_velocity_mps = Vec3(0.1, 0, 0);
+    r.buttons = buttons;
+    r.grab_seq = 0;
+    b.apply(r);
+    return r.position_m;
+  };
+  EXPECT_TRUE(step(Vec3(0.01, 0, 0), 0).isApprox(Vec3(0.01, 0, 0)));   // no clutch: the device position
+  // Clutch held at x = 0.01, the hand moves back to -0.03: the proxy stays at 0.01, no velocity.
+  EXPECT_TRUE(step(Vec3(0.01, 0, 0), kButtonClutch).isApprox(Vec3(0.01, 0, 0)));
+  EXPECT_TRUE(step(Vec3(-0.03, 0.02, 0), kButtonClutch).isApprox(Vec3(0.01, 0, 0)));
+  EXPECT_TRUE(r.linear_velocity_mps.isZero());
+  EXPECT_TRUE(b.clutched());
+  // Released: the proxy moves with the device again, from where it was (offset 0.04, -0.02, 0).
+  EXPECT_TRUE(step(Vec3(-0.03, 0.02, 0), 0).isApprox(Vec3(0.01, 0, 0)));
+  EXPECT_TRUE(step(Vec3(0.0, 0.02, 0), 0).isApprox(Vec3(0.04, 0, 0)));
+  EXPECT_TRUE(r.linear_velocity_mps.isApprox(Vec3(0.1, 0, 0)));
+  // A second indexing stroke adds up: proxy 0.04 held while the device goes back to 0 -> offset 0.04 more.
+  step(Vec3(0.0, 0.02, 0), kButtonClutch);
+  step(Vec3(-0.04, 0.02, 0), kButtonClutch);
+  EXPECT_TRUE(step(Vec3(0.0, 0.02, 0), 0).isApprox(Vec3(0.08, 0, 0)));
+  // Grab presses are counted (devices that count none), a device's own count is kept.
+  EXPECT_EQ(b.presses(), 0);
+  step(Vec3::Zero(), kButtonGrab);
+  EXPECT_EQ(r.grab_seq, 1);
+  step(Vec3::Zero(), kButtonGrab | kButtonClutch);   // grab held through a clutch stroke: same grab
+  EXPECT_EQ(r.grab_seq, 1);
+  step(Vec3::Zero(), 0);
+  step(Vec3::Zero(), kButtonGrab);
+  EXPECT_EQ(r.grab_seq, 2);
+  r.position_m.setZero();
+  r.buttons = kButtonGrab;
+  r.grab_seq = 7;
+  b.apply(r);
+  EXPECT_EQ(r.grab_seq, 7);
 }
 
 }  // namespace

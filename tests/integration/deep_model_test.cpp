@@ -1,4 +1,4 @@
-// Issue 11, defect 9: deep models. A 4096- and a 20 000-link URDF chain go through the URDF loader, the
+// Deep models. A 4096- and a 20 000-link URDF chain go through the URDF loader, the
 // haptree-fd executable and sim_server (load + a few adaptive steps) without recursion on the call stack;
 // a URDF whose joints close a loop (a link with two parents) is refused with both parents named.
 #include <gtest/gtest.h>

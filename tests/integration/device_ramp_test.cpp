@@ -1,4 +1,4 @@
-// The device side never steps the force (issue 15.2): when FEEDBACK stops (a stalled coupler, a broken
+// The device side never steps the force (docs/network_faults.md): when FEEDBACK stops (a stalled coupler, a broken
 // link between coupler and device) the device_bridge used to cut the force to zero after its 10 ms
 // feedback timeout and jump straight back to the full force with the next FEEDBACK — a jerk of the whole
 // force in one tick, at the hand. Now it ramps like the coupler's watchdog and bounds every per-tick change

@@ -276,7 +276,7 @@ TEST(Embedded, RandomBytesOnEveryChannelAreCountedNotFatal) {
   EXPECT_LE(s.max_force(0), s.copts[0].max_force_n + 1e-12);
 }
 
-// Issue 13.3, by construction on any CPU: the three hot loops (sim_server's step, the coupler, the device
+// Subnormals, by construction on any CPU: the three hot loops (sim_server's step, the coupler, the device
 // bridge) compute with flush-to-zero + denormals-are-zero, each in its own thread, and leave the mode of
 // every other thread (here the test's) alone.
 TEST(Embedded, HotLoopsComputeWithFlushToZeroAndDenormalsAreZero) {

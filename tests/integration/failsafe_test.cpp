@@ -1,4 +1,4 @@
-// Fail-safe behaviour of the bus/safety layer under the faults of issue 11 (defects 2-6), on one memq://
+// Fail-safe behaviour of the bus/safety layer under stale, duplicate, foreign and implausible messages, on one memq://
 // Bus with hand-made messages where a fault has to be injected precisely: the server's watchdog on user
 // forces, its clamps and stats, the coupler's instance-id restart rule, its refusal of foreign/duplicate/
 // implausible producers and absurd device positions, and one writer per device FEEDBACK channel.
@@ -525,7 +525,7 @@ TEST(Failsafe, DeviceBridgeFollowsOneCouplerPerFeedbackChannel) {
   EXPECT_EQ(bridge.coupler_takeovers(), 1);
 }
 
-// Issue 11, defect 4 over LCM: two couplers on one device's FEEDBACK channel. Over shm the coupler reads its
+// Over LCM: two couplers on one device's FEEDBACK channel. Over shm the coupler reads its
 // segment's writer; over LCM it watches the channel: another live instance's FEEDBACK is counted (and warned
 // about once from the stats tick), its own echoes and replays of old messages are not.
 TEST(Failsafe, CouplerOverLcmNoticesASecondCouplerOnItsDevice) {
@@ -558,7 +558,7 @@ TEST(Failsafe, CouplerOverLcmNoticesASecondCouplerOnItsDevice) {
 namespace haptree {
 namespace {
 
-// Issue 15.1: the check above must not wake the handler thread for each of the coupler's own FEEDBACK
+// The check above must not wake the handler thread for each of the coupler's own FEEDBACK
 // messages. While run() loops, the channel is delivered only in a kWriterCheckWindow_s (20 ms) window after
 // each stats tick: over ~2.3 s (3 windows, 60 ms) the subscription sees a few % of the coupler's own messages
 // (bound 20 %: windows that a loaded machine stretches), and a second writer publishing all along is still
@@ -600,7 +600,7 @@ TEST(Failsafe, CouplerChecksItsFeedbackChannelForASecondWriterInWindowsOnly) {
   EXPECT_GT(coupler.counters().other_feedback_writer.load(), 0);
 }
 
-// Issue 13.3: a snapshot that holds subnormal values (a producer other than sim_server, e.g. Python) has
+// A snapshot that holds subnormal values (a producer other than sim_server, e.g. Python) has
 // them set to 0 on arrival, counted; the coupler's loop computes with FTZ/DAZ on.
 TEST(Failsafe, CouplerFlushesSubnormalsOfIncomingSnapshots) {
   bus::Bus bus("memq://");

@@ -1,4 +1,4 @@
-// Issue 11, defect 12: sim_server reports its real-time factor and says when it cannot keep its rate.
+// sim_server reports its real-time factor and says when it cannot keep its rate.
 // A rate of 1 MHz cannot be kept by any machine for protein_like (857 DOF: one step is far above 1 µs), so
 // the stats must show rate_fraction < 0.9 and real_time_factor = steps/s × dt.
 #include <gtest/gtest.h>

@@ -1,4 +1,4 @@
-// Issue 15.5: replay_coupling on hand-made logs with what the chaos soak puts into a session's log.
+// replay_coupling on hand-made logs with what the chaos soak puts into a session's log.
 //  * an undecodable message on the COUPLER_SETTINGS channel (garbage, a cut message) must not shift which
 //    settings message a FEEDBACK is replayed with (it did: pass 2 counted every event on the channel, pass 1
 //    only the decodable ones, so the replay took a later settings message, or read past the end);

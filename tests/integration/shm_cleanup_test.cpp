@@ -1,4 +1,4 @@
-// Issue 11, defects 1 and 8, with the real executables (shared memory + a 127.0.0.1 tcpq hub, no root):
+// A dead session's FEEDBACK never reaches a new device, and segments do not outlive their writers, with the real executables (shared memory + a 127.0.0.1 tcpq hub, no root):
 //  * DeadSessionsForceNeverReachesANewDevice: sim_server + coupler + device_bridge over --shm, the user
 //    pulling; kill -9 the coupler and the bridge; a new device_bridge --shm without a coupler must render
 //    exactly zero (before the fix it rendered the dead coupler's last FEEDBACK, ~2.5 N).

@@ -1,4 +1,4 @@
-// Issue 11, defect 10: a session whose device link runs over shared memory, recorded with the default
+// A session whose device link runs over shared memory, recorded with the default
 // mirror rate, replays with replay_coupling's defaults: the coupler's settings come from the log
 // (lcmt_coupler_settings) and every mirrored FEEDBACK comes with the device state it answers, so
 // > 0 compared, 0 missing, deviation <= 1e-12 N (the replay is the same computation on the same bits).

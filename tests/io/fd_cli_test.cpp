@@ -95,7 +95,7 @@ TEST(FdCli, SceneWithStateMatchesLibraryAndOracle) {
   const Eigen::VectorXd got = parse_qdd(mg, r.out);
   ASSERT_EQ(got.size(), expect.size());
   for (int i = 0; i < got.size(); ++i) EXPECT_EQ(got(i), expect(i)) << i;   // %.17g round trip
-  // Tolerance: B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp; issue 14.3).
+  // Tolerance: B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp).
   const auto orc = testing::oracle_forward_dynamics(mg, st2);
   EXPECT_LE(testing::rel_err(got, orc.qdd), testing::qdd_error_bound(orc, st2, testing::kBoundC));
 }
@@ -138,7 +138,7 @@ TEST(FdCli, ErrorsAreOneLineAndNonZero) {
   r = run("");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("--urdf"), std::string::npos) << r.out;
-  // Issue 11, defect 13: a non-finite result (null in the JSON) is an error, naming the joints.
+  // A non-finite result (null in the JSON) is an error, naming the joints.
   const std::string huge = write_temp("huge.json", R"({"qd": {"j1": 1e300, "j2": 1e300}})");
   r = run("--scene chain --n 3 --state " + huge);
   EXPECT_EQ(r.status, 1) << r.out;

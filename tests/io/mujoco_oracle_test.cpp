@@ -155,7 +155,7 @@ struct Result {
   double vs_mujoco, vs_oracle, mujoco_vs_oracle, bound, mujoco_bound;
 };
 
-// Tolerance (issue 14.3): haptree's DCA is within B = c·n·ε·κ(H)·cancel of the long-double oracle
+// Tolerance: haptree's DCA is within B = c·n·ε·κ(H)·cancel of the long-double oracle
 // (tests/support/oracle.hpp, c = kBoundC). MuJoCo (composite-rigid-body H, sparse LDLᵀ in double)
 // is backward stable too, with a constant of the same order: H and the bias forces are sums of
 // O(depth) products, each rounding a relative ε, and LDLᵀ of an SPD H is backward stable

@@ -1,4 +1,4 @@
-// Issue 13.2 "molecules cost what moved": the force field evaluates only pairs between bodies that
+// "Molecules cost what moved": the force field evaluates only pairs between bodies that
 // moved relative to each other (ff::NonbondedOptions::follow_motion), and stays equal to the
 // all-pairs reference (ff::evaluate_all_pairs) over adaptive runs with reselections.
 //

@@ -1,4 +1,4 @@
-// Issue 11, defect 11: long helices overflow PDB's fixed coordinate columns. The writers refuse (naming the
+// Long helices overflow PDB's fixed coordinate columns. The writers refuse (naming the
 // atom) and molecule_helix writes mmCIF instead; the PDB reader treats shifted columns as an error naming
 // the line; two coincident atoms are refused at load time, naming both.
 #include <gtest/gtest.h>

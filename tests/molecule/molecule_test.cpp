@@ -77,7 +77,7 @@ std::string expect_throw_message(const std::function<void()>& f) {
 TEST(MoleculeRead, RawEntry1c3wDropsHeteroGroupsAndDetectsTheGap) {
   const Structure s = read_structure(mol_dir() + "1c3w.pdb");
   EXPECT_TRUE(s.protein_mode);
-  EXPECT_EQ(s.atoms.size(), 1720u);     // protein heavy atoms (MOLECULAR.md §1.2)
+  EXPECT_EQ(s.atoms.size(), 1720u);     // protein heavy atoms of the deposited entry (residues 5–156, 162–231)
   EXPECT_EQ(s.residues.size(), 222u);
   EXPECT_EQ(s.dropped_waters, 23);
   EXPECT_EQ(s.dropped_hetero_residues, 15);   // RET + 13 LI1 + SQU
@@ -97,7 +97,7 @@ TEST(MoleculeRead, RawEntryLoadsAsTwoTreesWith766Joints) {
   SceneOptions o;
   o.with_force_field = true;
   const MolecularScene sc = load_molecular_scene("bacteriorhodopsin-raw", o);
-  EXPECT_EQ(sc.torsion.joints.size(), 766u);   // MOLECULAR.md §5.2
+  EXPECT_EQ(sc.torsion.joints.size(), 766u);   // two segments: the chain breaks at the unresolved loop 157–161
   EXPECT_EQ(sc.torsion.roots.size(), 2u);
   EXPECT_EQ(sc.model->nv, 766);
   EXPECT_EQ(sc.torsion.nbodies, 768);

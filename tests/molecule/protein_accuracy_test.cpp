@@ -1,4 +1,4 @@
-// Protein-grade accuracy (issue 14.2): full DCA on the bacteriorhodopsin torsion model against the
+// Protein-grade accuracy: full DCA on the bacteriorhodopsin torsion model against the
 // long-double oracle, at the peer benchmark's state (crystal torsions, rates U(−1, 1) rad/ps) with
 // the ff14SB force field applied as external body forces.
 #include <gtest/gtest.h>
@@ -39,7 +39,8 @@ TEST(ProteinAccuracy, BacteriorhodopsinDcaMatchesOracle) {
   // the light-leaf form measures 8.4e-13 at this state (2.7e-12 = 1.6·c·n·ε at bench_peers' state, τ
   // from the force field; the rest: light bodies whose joint meets
   // another light side, still in mobility form). tol = 6·c·n·ε = 1.0e-11 leaves 4× for other
-  // CPUs' operation orders. The issue's 1e-12 target is not reached yet (Bullet, Simbody: 8e-14).
+  // CPUs' operation orders. The plain pass does not reach 1e-12 here (Bullet, Simbody: 8e-14); the
+  // refined q̈ below does.
   const double c_n_eps = testing::kBoundC * m.nv * std::numeric_limits<double>::epsilon();
   const double tol = std::min(6 * c_n_eps, testing::qdd_error_bound(orc, st, testing::kBoundC));
   std::printf("[bR] err %.3e, kappa(H) %.3e, bound B %.3e, tol %.3e\n", err,
@@ -47,7 +48,7 @@ TEST(ProteinAccuracy, BacteriorhodopsinDcaMatchesOracle) {
               tol);
   EXPECT_LE(err, tol);
 
-  // Data::refine (issue 14.2; kDouble, the default): one refinement step with a backward-stable
+  // Data::refine (kDouble, the default): one refinement step with a backward-stable
   // residual (RNEA) removes the assembly's element growth, so the growth-free estimate c·n·ε = 1.7e-12 is the tolerance
   // (measured at bench_peers' state: 6.9e-14, docs/accuracy_and_stability.md).
   set_refinement(m, d, Refinement::kDouble);

@@ -1,4 +1,4 @@
-// Long adaptive runs that switch ε or the DOF budget k at every step (issue 6, stress suite), shared
+// Long adaptive runs that switch ε or the DOF budget k at every step (stress suite), shared
 // by tests/stress/adaptive_switching_test.cpp (smoke, 2000 steps) and tools/adaptive_stress.cpp
 // (1e5 steps, progress, limits). Every step: adaptive_step with a new AdaptiveOptions (so every step
 // reselects), then the checks: finite q and q̇, no new singular pivot / non-finite q̈ (Data::diag),
@@ -195,7 +195,7 @@ inline SwitchingResult run_adaptive_switching(const SwitchingOptions& o, std::sh
       const auto ref = testing::oracle_forward_dynamics(m, st, locked);
       const double err = testing::rel_err(qa, ref.qdd);
       r.worst_oracle_err = std::max(r.worst_oracle_err, err);
-      // Error bound (issue 14.3): B of the reduced system (free DOFs, κ(H_aa), its cancellation)
+      // Error bound: B of the reduced system (free DOFs, κ(H_aa), its cancellation)
       // scaled to the full model's n and κ(H): the hybrid pass builds the reduced system from all
       // bodies (docs/accuracy_and_stability.md, "Tolerances from error analysis").
       // (ref.H is the full mass matrix; only the solve is reduced.)

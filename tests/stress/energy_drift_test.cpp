@@ -3,7 +3,7 @@
 // by these tests); docs/accuracy_and_stability.md has the 10⁵-step tables. Horizons stay ≤ 1 s:
 // the falling tree is chaotic (largest real eigenvalue of the state Jacobian 8–60 /s), so later
 // states depend on rounding, and the bounds below keep ≥ 5× headroom over the measured values.
-// Tolerances (issue 14.3): what is bounded is the integrators' truncation error of the energy,
+// Tolerances: what is bounded is the integrators' truncation error of the energy,
 // C·dtᵖ (p = 1 Euler, 4 RK4), not rounding, which is ≈ steps·ε ≈ 1e-13 of E here. A CPU's other
 // rounding moves the (chaotic) trajectory, not the size of the energy error along it, so the
 // constants C are taken from the measured runs (× 5 headroom) and the order tests bracket 2ᵖ

@@ -32,10 +32,10 @@ TEST(NearSingular, MassRatiosBetweenNeighbours) {
   }
 }
 
-// Light bodies (issue 14.2): every third link of a 32-link chain has its smallest principal
+// Light bodies: every third link of a 32-link chain has its smallest principal
 // inertia / r and its mass / √r, r = 1 … 1e4 (the Cα–H case is r ≈ 1e3). κ(H) barely moves with r
 // (7e5 … 8e5, from the chain's length), so the backward-error bound B = c·n·ε·κ(H)·cancel
-// (tests/support/oracle.hpp) is ≈ 5e-8 for every r and the issue's protein-grade target 1e-12 is
+// (tests/support/oracle.hpp) is ≈ 5e-8 for every r and the protein-grade target 1e-12 is
 // the binding tolerance: min(1e-12, B). The mobility-form join of a light leaf cancelled, error
 // ∝ r² (1.6e-12 at r = 1e2, 1.7e-10 at 1e3, 8.7e-9 at 1e4: this test failed); the light-leaf form
 // measures 2e-14 … 4e-14 up to r = 1e3 and 2.3e-13 at 1e4 (the back-substitution still forms a
@@ -57,7 +57,7 @@ TEST(NearSingular, LightBodiesBetweenNormalLinks) {
 }
 
 // Coaxial joints separated by a rod whose axial inertia is scaled by a = 1 … 1e-6: cond(H) grows
-// ∝ 1/a (8e5 → 8e11) and the error with it (measured ≤ 9e-15 / a). Tolerance (issue 14.3): the
+// ∝ 1/a (8e5 → 8e11) and the error with it (measured ≤ 9e-15 / a). Tolerance: the
 // backward-error bound B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp), whose κ(H) carries the
 // 1/a; it replaces a fit to one machine (3e-14 / a, 3× the native measurement).
 TEST(NearSingular, AlignedAxes) {
@@ -92,7 +92,7 @@ TEST(NearSingular, BeyondTheRangeFiniteAndReported) {
     EXPECT_LE(testing::rel_err(fd.qdd, testing::oracle_forward_dynamics(*m, st).qdd), 1e-2) << a;
   }
   // A result is either flagged or accurate: since the pivot test is relative to the pivot's own
-  // diagonal entry (issue 14.1, was the trace), a pivot that is not round-off is kept, so at these
+  // diagonal entry (not the trace: its round-off scale), a pivot that is not round-off is kept, so at these
   // ratios a pass may report none — then its error must be within MassRatiosBetweenNeighbours'
   // bound (growth × B). Here that bound exceeds 1 (the analysis promises nothing), so this only
   // asserts a finite result; measured with the new test: 5.7e-3 at 1e-12, 6.8e-4 at 1e12, no

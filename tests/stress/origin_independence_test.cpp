@@ -1,14 +1,14 @@
-// Origin independence for every joint type and topology (issue 14.1): random models — fixed roots
+// Origin independence for every joint type and topology: random models — fixed roots
 // with inertia, free/revolute/spherical roots, every joint type, chains of welds, welded massive
 // links, welds far from their parent's frame, degree-reduced hubs — translated by up to 10⁶ m and
 // rotated give the same q̈ as at the origin, and match the long-double oracle; through the
 // generator (ModelBuilder) and through URDF (with and without lumped fixed joints); for the full
 // pass, the coupling snapshot at a grab, and the hybrid (adaptive) pass.
 //
-// Tolerances (issue 14.3): a pure translation changes no number the DCA uses (all offsets are
+// Tolerances: a pure translation changes no number the DCA uses (all offsets are
 // local), so those results must agree to 1e-14 (measured: bit-identical). Against the oracle the
 // bound is B = c·n·ε·κ(H)·cancel (tests/support/oracle.hpp, c = 10; the sweep's worst err/B is
-// printed, 0.03 when written), and the issue's 1e-10 on top wherever the conditioning allows it
+// printed, 0.03 when written), and 1e-10 on top wherever the conditioning allows it
 // (κ(H) ≤ 1e6). A rotation changes every world-axes number: both results are within that bound of
 // the oracle, so they differ by at most twice it. Models with a moving 1 km weld have κ(H) up to
 // 1e9: no double-precision method meets 1e-10 there (one rounding of the rotated data moves q̈ by
@@ -34,7 +34,7 @@ using testing::rel_err;
 
 constexpr double kC = 10;   // the constant c of the error bound
 
-// The oracle tolerance described above: B, and the issue's 1e-10 where κ(H) ≤ 1e6.
+// The oracle tolerance described above: B, and 1e-10 where κ(H) ≤ 1e6.
 double tolerance(const testing::OracleResult& orc, const State& st,
                  const std::vector<bool>& locked = {}) {
   const double B = qdd_error_bound(orc, st, kC, locked);
@@ -130,7 +130,7 @@ TEST(OriginIndependence, GeneratedModelsTranslatedAndRotated) {
   w.print("generated");
 }
 
-// The issue's model: a binary tree of 127 joints, 10 % of them fixed, mounted 1 km from the
+// A hard case for welds far from the origin: a binary tree of 127 joints, 10 % of them fixed, mounted 1 km from the
 // origin through a fixed joint off a massive root link (itself fixed to the ground). Before the
 // fix: 8e-7 against the oracle (fixed ground joints in mobility form left a residual mobility of
 // ε·|Φ| at the far handle); now bit-identical to the tree mounted 0.3 m from the root link.
@@ -156,7 +156,7 @@ TEST(OriginIndependence, BinaryTreeMountedOneKilometreOffAMassiveRootLink) {
   }
 }
 
-// The sweep's worst case before issue 14.1's pivot fix (stress_report --sections welds, model 11
+// The sweep's worst case for a pivot test on the wrong scale (stress_report --sections welds, model 11
 // of each 1 km row): a light body (1.3 kg) on a revolute joint off a link fixed to the ground,
 // with a welded cluster of three links (156 kg at mass ratio 10³) spanning 620 m mounted 900 m
 // away on it (same topology at both ratios: the generator draws the same numbers). The

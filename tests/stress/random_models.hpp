@@ -1,4 +1,4 @@
-// Random articulated models for the origin-independence property (issue 14.1), shared by
+// Random articulated models for the origin-independence property, shared by
 // tests/stress/origin_independence_test.cpp (a small sweep) and tools/stress_report (a larger one).
 // A ModelSpec is a plain list of bodies; it is placed in the world by a rigid transform (Rw, t)
 // applied to the joints that attach to the ground (and to gravity), and built either directly or
@@ -181,7 +181,7 @@ inline State rotated_state(const Model& m, const State& st, const Mat3& Rw) {
   return r;
 }
 
-// The issue's model (issue 14.1): a binary tree of 127 joints, ≈ 10 % of them fixed, mounted
+// A hard case for welds far from the origin: a binary tree of 127 joints, ≈ 10 % of them fixed, mounted
 // `mount` metres from a 1000 kg root link (itself fixed to the ground) through a fixed joint.
 // Shared by OriginIndependence.BinaryTreeMountedOneKilometreOffAMassiveRootLink and
 // stress_report --sections welds.

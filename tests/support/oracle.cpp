@@ -57,7 +57,7 @@ OracleResult oracle_forward_dynamics(const Model& m, const State& st,
   const V3 g = m.gravity.cast<LD>();
   // Coordinates about o = body 1's joint point instead of the world origin: a model translated by
   // D keeps its positions relative to o exactly (offset − o of two doubles is exact in long
-  // double), so the oracle's own error does not grow like (D/L)²·ε_LD (1e-5 at 10⁶ m, issue 14).
+  // double), so the oracle's own error does not grow like (D/L)²·ε_LD (1e-5 at 10⁶ m).
   const V3 o = nb > 1 ? V3(m.joint_offset[1].cast<LD>()) : V3(V3::Zero());
 
   for (int k = 1; k < nb; ++k) {

@@ -27,7 +27,7 @@ struct OracleResult {
 OracleResult oracle_forward_dynamics(const Model& model, const State& state,
                                      const std::vector<bool>& locked = {});
 
-// Tolerances from error analysis (issue 14.3) instead of from one machine. q̈ solves H q̈ = τ − C;
+// Tolerances from error analysis instead of from one machine. q̈ solves H q̈ = τ − C;
 // an algorithm whose result is the exact solution of a problem perturbed by c·n·ε relative to its
 // data (backward stable, as the DCA/ABA recursions are) has a normwise relative forward error
 //   ≤ c · n · ε · κ₂(H) · max(1, (‖τ‖ + ‖C‖) / ‖τ − C‖),

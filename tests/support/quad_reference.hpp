@@ -1,4 +1,4 @@
-// Quad-precision reference q̈ (issue 14.2). The long-double oracle's Cholesky has a forward error
+// Quad-precision reference q̈. The long-double oracle's Cholesky has a forward error
 // of order κ₂(H)·u_LD (u_LD = 2⁻⁶⁴ ≈ 5.4e-20): ~1e-12 for a 1024-link chain (κ₂ ≈ 3e9), the size
 // of the errors it is asked to measure there. Here its answer is refined with the residual
 // τ − ID(q, q̇, q̈) computed in __float128 (haptree/inverse_dynamics.hpp, 113-bit significand) and
