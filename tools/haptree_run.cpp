@@ -33,7 +33,7 @@ namespace {
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
 
-// The viewer (issue 12), embedded: the same class as the `viewer` executable, on the session's bus.
+// The viewer, embedded: the same class as the `viewer` executable, on the session's bus.
 struct ViewerLaunch {
   int port = 8080;              // 0 = no viewer
   std::string bind = "127.0.0.1";

@@ -378,7 +378,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       children.push_back({du, log_dir + "/" + du + ".log"});
       children.back().pid = spawn(dev, children.back().log);
     }
-    if (browser) {   // the viewer (issue 12), beside the others on the same bus
+    if (browser) {   // the viewer, beside the others on the same bus
       std::vector<std::string> vw = {find_executable("viewer", po.bin_dir, po.argv0)};
       vw.insert(vw.end(), common.begin(), common.end());
       vw.insert(vw.end(), {"--port", std::to_string(se.viewer_port), "--bind", se.viewer_bind, "--scene", se.sim.scene,

@@ -27,7 +27,7 @@ struct SessionOptions {
   double pull_distance_m = 0.03;
   double stale_after_s = 0.05;   // coupler watchdog (haptree_run passes the coupler's default)
   double mirror_rate_hz = 100;   // device_bridge's shm -> LCM mirror (FEEDBACK + the state it answers)
-  // Viewer (issue 12): port 0 = none. Users below scripted_users run the scripted pull until their page
+  // Viewer: port 0 = none. Users below scripted_users run the scripted pull until their page
   // takes over; the others are browser-only (idle until a tab grabs). -1 = all scripted, no browser.
   int viewer_port = 0;
   std::string viewer_bind = "127.0.0.1";

@@ -1,4 +1,4 @@
-"""The viewer on a replay (issue 12): a session recorded by lcm-logger, played back by lcm-logplayer into a
+"""The viewer on a replay: a session recorded by lcm-logger, played back by lcm-logplayer into a
 stand-alone viewer, checked on the viewer's own WebSocket frames (what the page draws).
 
   viewer_replay_test.py HAPTREE_RUN VIEWER LCMTYPES_DIR OUT_DIR
