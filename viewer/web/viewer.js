@@ -5,6 +5,7 @@
 /* global NGL */
 const USER_COLOURS = ['#d62728', '#1f77b4', '#2ca02c', '#9467bd', '#e377c2', '#17becf', '#bcbd22', '#8c564b'];
 const ACTIVE = 0xff8c00, RIGID = 0x8fa3b8;
+const REACH_MAX = 12.0;   // display units (Å): the largest reach sphere drawn
 const ARROW_PER_N = 8.0;   // display units (Å) per newton at the device (shown in the HUD)
 
 const body = document.body;
@@ -188,7 +189,9 @@ function drawOverlay(f) {
       sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 1.2;
       cursors += 1;
       if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.2; }
-      else if (u.reach > 0) { rp.set(u.proxy, 3 * u.id); rr[u.id] = u.reach; reachShown += 1; }
+      // near the scene only (the display spans ~80 units): a large translucent sphere costs a software
+      // rasteriser a full-screen blend and says nothing about aiming
+      else if (u.reach > 0 && u.reach <= REACH_MAX) { rp.set(u.proxy, 3 * u.id); rr[u.id] = u.reach; reachShown += 1; }
     }
   }
   reaches.setAttributes({ position: rp, radius: rr });
