@@ -135,13 +135,13 @@ def frame_cost(exe, name, args, seconds):
 
 
 def frames_table(exe, seconds):
-    rows = [frame_cost(exe, name, args, seconds) for name, args in FRAME_SCENES]
     print(f"| scene | frames drawn/s | frames received/s | page JS ms/frame (mean) | positions ms (median) | "
           "draw ms (SwiftShader) | WebSocket bytes/frame |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
+    print("|---|---|---|---|---|---|---|", flush=True)
+    for name, args in FRAME_SCENES:   # a row as each scene is measured
+        r = frame_cost(exe, name, args, seconds)
         print(f"| {r['scene']} | {r['fps']:.1f} | {r['msgs']:.1f} | {r['js']:.2f} | {r['js_median']:.2f} | "
-              f"{r['draw']:.1f} | {r['bytes']:.0f} |" + (f" page error: {r['error']}" if r["error"] else ""))
+              f"{r['draw']:.1f} | {r['bytes']:.0f} |" + (f" page error: {r['error']}" if r["error"] else ""), flush=True)
 
 
 def main():
