@@ -414,7 +414,8 @@ bool Coupler::iterate(double now) {
     if (body < 1) {
       scene_box_.update();
       const lcmt_scene_state& s = scene_box_.front();
-      double best = std::numeric_limits<double>::infinity();
+      // Nearest body within the grab radius of the proxy (none farther: the press grabs nothing).
+      double best = opt_.grab_radius > 0 ? opt_.grab_radius * opt_.grab_radius : std::numeric_limits<double>::infinity();
       for (int i = 0; i < s.nbodies && i < static_cast<int>(s.body_position.size()); ++i) {
         const int k = s.first_body + i;   // a large scene comes in chunks: this one's bodies only
         if (k < 1) continue;

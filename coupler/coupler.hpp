@@ -36,6 +36,8 @@ struct CouplerOptions {
   double force_scale = 0.5;           // newtons per scene force unit
   Vec3 offset = Vec3::Zero();         // scene position of the device origin
   int grab_body = -1;                 // -1: the body nearest the device point in the latest scene state
+  double grab_radius = 0;             // scene units: a press grabs the nearest body only within this distance
+                                      // of the device point (the proxy); 0: the nearest body wherever it is
   double max_force_n = 3.0;           // clamp (device limit)
   double stale_after_s = 0.05;        // watchdog: snapshot/pose older than this is stale (measured default:
                                       // docs/benchmarks_processes.md; 5 ms tripped 5-17 times/s on 2 cores)

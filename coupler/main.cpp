@@ -30,6 +30,10 @@ int main(int argc, char** argv) {
   app.add_option("--offset", offset, "scene position of the device origin (3 values)")->expected(3)->check(haptree::bus::finite_in(-1e12, 1e12));
   app.add_option("--grab-body", o.grab_body, "body to grab (-1: nearest to the device point)")
       ->check(CLI::Range(-1, 1 << 30))->capture_default_str();
+  app.add_option("--grab-radius", o.grab_radius,
+                 "with --grab-body -1: a press grabs the nearest body only within this distance of the device point, "
+                 "scene length units (0: the nearest body wherever it is)")
+      ->check(CLI::Range(0.0, 1e12))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "force clamp at the device, N (the user force sent to the server is clamped to 2 x this / --force-scale)")
       ->check(haptree::bus::positive(1000))->capture_default_str();
   app.add_option("--stale-after-s", o.stale_after_s, "watchdog: snapshot or device-pose age (s) that counts as stale; also the silence after which another "

@@ -2,8 +2,12 @@
 
 #include <spdlog/spdlog.h>
 
+#include <signal.h>
+
 #include <chrono>
 #include <cmath>
+#include <cstring>
+#include <exception>
 #include <limits>
 #include <stdexcept>
 #include <thread>
@@ -14,6 +18,7 @@
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
 #include "haptree/device/registry.hpp"
+#include "haptree/device/vendor_library.hpp"
 #include "haptree/safety.hpp"
 
 namespace haptree {
@@ -28,6 +33,99 @@ FeedbackRenderer feedback_renderer(const DeviceBridgeOptions& o) {
                           o.max_force_n, rate / o.rate_hz);
 }
 
+device::DeviceConfig device_config(const DeviceBridgeOptions& o, bus::Bus* bus) {
+  device::DeviceConfig cfg;
+  cfg.spec.name = o.kind + "_" + std::to_string(o.device);
+  cfg.spec.max_force_n = o.max_force_n;
+  cfg.spec.rate_hz = o.rate_hz;
+  cfg.options = o.options;
+  cfg.bus = bus;   // devices fed from the bus (browser) subscribe here
+  cfg.device_id = o.device;
+  cfg.channel_suffix = o.channel_suffix;
+  return cfg;
+}
+
+namespace {
+
+std::string limit(double v, const char* unit) {
+  if (!std::isfinite(v)) return "not reported";
+  char b[64];
+  std::snprintf(b, sizeof b, "%.4g %s", v, unit);
+  return b;
+}
+
+void crash_handler(int sig) {
+  device::emergency_stop_devices();
+  ::signal(sig, SIG_DFL);
+  ::raise(sig);
+}
+
+}  // namespace
+
+void install_device_crash_handlers() {
+  for (int sig : {SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT}) {
+    struct sigaction sa {};
+    sa.sa_handler = crash_handler;
+    sigemptyset(&sa.sa_mask);
+    sa.sa_flags = SA_RESETHAND | SA_NODEFER;
+    ::sigaction(sig, &sa, nullptr);
+  }
+  std::set_terminate([] {
+    device::emergency_stop_devices();
+    std::abort();
+  });
+}
+
+int probe_device(const DeviceBridgeOptions& o, double duration_s, std::FILE* out, std::FILE* err) {
+  std::unique_ptr<device::Device> dev;
+  try {
+    dev = device::make_device(o.kind, device_config(o, nullptr));
+  } catch (const std::exception& e) {
+    std::fprintf(err, "device_bridge --probe: %s\n", e.what());
+    return 1;
+  }
+  const device::Status s = dev->open();
+  if (!s.ok()) {
+    std::fprintf(err, "device_bridge --probe: %s\n", s.reason);
+    return 1;
+  }
+  device::DeviceReading r;
+  device::Status rs = device::Status::Error("no reading");
+  const auto t0 = std::chrono::steady_clock::now();
+  double t = 0;
+  do {
+    rs = dev->read(t, r);
+    if (rs.ok()) dev->write(Vec3::Zero(), Vec3::Zero());   // keeps a vendor watchdog fed; force output is off
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  } while (t < duration_s);
+  const device::DeviceDescription d = dev->describe();
+  std::fprintf(out, "kind: %s\n", o.kind.c_str());
+  std::fprintf(out, "model: %s\n", d.model.empty() ? "(not reported)" : d.model.c_str());
+  std::fprintf(out, "serial: %s\n", d.serial.empty() ? "(none reported)" : d.serial.c_str());
+  std::fprintf(out, "max force: %s\n", limit(d.max_force_n, "N").c_str());
+  std::fprintf(out, "max continuous force: %s\n", limit(d.max_continuous_force_n, "N").c_str());
+  std::fprintf(out, "max torque: %s\n", limit(d.max_torque_nm, "N m").c_str());
+  std::fprintf(out, "max stiffness: %s\n", limit(d.max_stiffness_n_per_m, "N/m").c_str());
+  std::fprintf(out, "max damping: %s\n", limit(d.max_damping_n_s_per_m, "N s/m").c_str());
+  std::fprintf(out, "workspace radius: %s\n", limit(d.workspace_radius_m, "m").c_str());
+  std::fprintf(out, "orientation: %s, torque output: %s\n", d.orientation ? "yes" : "no", d.torque ? "yes" : "no");
+  std::fprintf(out, "axes: %s\n", d.axes.empty() ? "(none)" : d.axes.c_str());
+  int rc = 0;
+  if (rs.ok()) {
+    std::fprintf(out, "position: %.6f %.6f %.6f m\n", r.position_m.x(), r.position_m.y(), r.position_m.z());
+    std::fprintf(out, "orientation (w x y z): %.4f %.4f %.4f %.4f\n", r.orientation.w(), r.orientation.x(),
+                 r.orientation.y(), r.orientation.z());
+    std::fprintf(out, "buttons: %d (grab %s, clutch %s)\n", r.buttons, (r.buttons & device::kButtonGrab) ? "down" : "up",
+                 (r.buttons & device::kButtonClutch) ? "down" : "up");
+  } else {
+    std::fprintf(err, "device_bridge --probe: reading the device failed: %s\n", rs.reason);
+    rc = 1;
+  }
+  dev->close();
+  return rc;
+}
+
 DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
     : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()),
       coupler_lock_(options.feedback_timeout_s) {
@@ -39,22 +137,28 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
     throw std::invalid_argument("device_bridge: the feedback ramps must be positive");
   if (!(std::isfinite(opt_.max_force_rate_n_per_s) && opt_.max_force_rate_n_per_s >= 0))
     throw std::invalid_argument("device_bridge: --max-force-rate-n-per-s must be >= 0 (0: the clamp within 5 ms)");
-  renderer_ = feedback_renderer(opt_);
   if (!(std::isfinite(opt_.mirror_rate_hz) && opt_.mirror_rate_hz >= 0))
     throw std::invalid_argument("device_bridge: --mirror-rate-hz must be >= 0");
   if (opt_.device < 0) throw std::invalid_argument("device_bridge: --device must be >= 0");
-  device::DeviceConfig cfg;
-  cfg.spec.name = opt_.kind + "_" + std::to_string(opt_.device);
-  cfg.spec.max_force_n = opt_.max_force_n;
-  cfg.spec.rate_hz = opt_.rate_hz;
-  cfg.options = opt_.options;
-  cfg.bus = &bus_;   // devices fed from the bus (browser) subscribe here
-  cfg.device_id = opt_.device;
-  cfg.channel_suffix = opt_.channel_suffix;
-  device_ = device::make_device(opt_.kind, cfg);
+  device_ = device::make_device(opt_.kind, device_config(opt_, &bus_));
   if (!device_) throw std::runtime_error("device_bridge: unknown device kind '" + opt_.kind + "'");
   const device::Status s = device_->open();
   if (!s.ok()) throw std::runtime_error(std::string("device_bridge: open failed: ") + s.reason);
+  // A device that reports its own maximum lowers the force limit to it (never raises it).
+  const device::DeviceDescription d = device_->describe();
+  if (std::isfinite(d.max_force_n) && d.max_force_n > 0 && d.max_force_n < opt_.max_force_n) {
+    spdlog::info("device_bridge {}: {} reports a max force of {} N: forces clamped there (--max-force-n {} N)",
+                 opt_.device, d.model.empty() ? opt_.kind : d.model, d.max_force_n, opt_.max_force_n);
+    opt_.max_force_n = d.max_force_n;
+  }
+  renderer_ = feedback_renderer(opt_);
+  render_torque_ = d.torque && std::isfinite(d.max_torque_nm) && d.max_torque_nm > 0;
+  if (render_torque_) {
+    DeviceBridgeOptions t = opt_;
+    t.max_force_n = d.max_torque_nm;
+    t.max_force_rate_n_per_s = opt_.max_force_rate_n_per_s > 0 ? opt_.max_force_rate_n_per_s * d.max_torque_nm / opt_.max_force_n : 0;
+    torque_renderer_ = feedback_renderer(t);
+  }
   for (auto& t : sent_s_) t.store(-1);
   ch_state_ = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
@@ -74,7 +178,24 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
                opt_.shm ? "shared memory" : bus_.url());
 }
 
-DeviceBridge::~DeviceBridge() { device_->close(); }
+DeviceBridge::~DeviceBridge() { shut_device(false); }
+
+void DeviceBridge::shut_device(bool ramp) noexcept {
+  if (!device_ || shut_) return;
+  shut_ = true;
+  const double period = 1.0 / opt_.rate_hz;
+  // Down to zero at the rate limit (at most the ramp-down time), then zero, force output off, closed.
+  for (int k = 0; ramp && k < 1000 && (renderer_.rendered().norm() > 0 || torque_renderer_.rendered().norm() > 0); ++k) {
+    renderer_.ramp_down();
+    torque_renderer_.ramp_down();
+    if (!device_->write(renderer_.rendered(), torque_renderer_.rendered()).ok()) break;
+    std::this_thread::sleep_for(std::chrono::duration<double>(period));
+  }
+  device_->write(Vec3::Zero(), Vec3::Zero());
+  device_->enable_force(false);
+  force_enabled_ = false;
+  device_->close();
+}
 
 // One writer per device FEEDBACK channel: follow one coupler instance; another is taken only after the
 // followed one was silent for feedback_timeout_s (by then the device renders zero anyway): a restart.
@@ -125,6 +246,8 @@ void DeviceBridge::report_problems() {
 
 void DeviceBridge::on_feedback(const lcmt_feedback& m, double t) {
   feedbacks_.fetch_add(1, std::memory_order_relaxed);
+  if (std::isfinite(m.force_n[0]) && std::isfinite(m.force_n[1]) && std::isfinite(m.force_n[2]))
+    valid_feedback_.store(true, std::memory_order_release);
   feedback_time_s_.store(t, std::memory_order_release);
   if (m.echo_device_seq > last_echo_.load(std::memory_order_relaxed)) {
     last_echo_.store(m.echo_device_seq, std::memory_order_relaxed);
@@ -137,6 +260,17 @@ double DeviceBridge::latency_percentile_us(double q) const { return hist_.percen
 uint64_t DeviceBridge::latency_samples() const { return hist_.count(); }
 
 int DeviceBridge::run(const std::atomic<bool>& stop) {
+  try {
+    const int rc = loop(stop);
+    shut_device(rc == kExitStopped);
+    return rc;
+  } catch (...) {
+    shut_device(false);   // an exception in the bridge's own path: zero, off, closed, then the error
+    throw;
+  }
+}
+
+int DeviceBridge::loop(const std::atomic<bool>& stop) {
   // FTZ/DAZ in the device loop (issue 13.3), as in the coupler's: no subnormal operand costs an assist.
   const ScopedFlushDenormals ftz;
   ftz_daz_.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
@@ -148,7 +282,15 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
   bool mirror_due = false;
   while (!stop.load(std::memory_order_relaxed)) {
     const double t = now_s();
-    if (device_->read(t - t0, r).ok()) {
+    r.grab_body = 0;   // a device that names no body or counts no presses leaves these at 0
+    r.grab_seq = 0;
+    const device::Status rs = device_->read(t - t0, r);
+    if (rs.code == device::StatusCode::kError) {
+      fault_ = std::string("device read failed: ") + rs.reason;
+      return kExitDeviceFault;
+    }
+    if (rs.ok()) {
+      buttons_.apply(r);   // grab press count and clutch, the same for every kind
       device::to_lcmt(r, opt_.device, bus::now_utime(), msg);
       msg.instance_id = instance_id_;
       sent_s_[static_cast<size_t>(r.seq % kRing)].store(now_s(), std::memory_order_release);
@@ -170,11 +312,31 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     } else if (fb_box_.update()) {
       fb_ = fb_box_.front();
     }
+    // Force output comes on with the first valid FEEDBACK: nothing is rendered before the coupler speaks.
+    if (!force_enabled_ && valid_feedback_.load(std::memory_order_acquire)) {
+      const device::Status es = device_->enable_force(true);
+      if (!es.ok()) {
+        fault_ = std::string("enabling force output failed: ") + es.reason;
+        return kExitDeviceFault;
+      }
+      force_enabled_ = true;
+    }
     const double t_fb = feedback_time_s_.load(std::memory_order_acquire);
     const double now = now_s();
-    const Vec3 f = renderer_.render(now, t_fb < 0 ? std::numeric_limits<double>::infinity() : now - t_fb,
-                                    Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2]));
-    device_->write_force(f);
+    const double age = t_fb < 0 ? std::numeric_limits<double>::infinity() : now - t_fb;
+    // While the clutch is held the proxy stands still and the hand moves freely: no force (ramped out
+    // and back in at the rate limit).
+    const bool render = force_enabled_ && !buttons_.clutched();
+    const Vec3 f = renderer_.render(now, age, render ? Vec3(fb_.force_n[0], fb_.force_n[1], fb_.force_n[2]) : Vec3::Zero());
+    const Vec3 tau = render_torque_ ? torque_renderer_.render(now, age, render ? Vec3(fb_.torque_nm[0], fb_.torque_nm[1],
+                                                                                     fb_.torque_nm[2])
+                                                                              : Vec3::Zero())
+                                    : Vec3::Zero();
+    const device::Status ws = device_->write(f, tau);
+    if (ws.code == device::StatusCode::kError) {
+      fault_ = std::string("device write failed: ") + ws.reason;
+      return kExitDeviceFault;
+    }
     max_force_step_n_.store(renderer_.max_step_seen(), std::memory_order_relaxed);
     last_force_n_.store(f.norm(), std::memory_order_relaxed);
     if (f.norm() > max_force_n_.load(std::memory_order_relaxed)) max_force_n_.store(f.norm());
@@ -210,14 +372,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
     bus::sleep_until_or_stop(kEpoch + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(next)),
                              stop);
   }
-  // Stopping: down to zero at the rate limit (at most the ramp-down time), then zero.
-  for (int k = 0; k < 1000 && renderer_.rendered().norm() > 0; ++k) {
-    renderer_.ramp_down();
-    device_->write_force(renderer_.rendered());
-    std::this_thread::sleep_for(std::chrono::duration<double>(period));
-  }
-  device_->write_force(Vec3::Zero());
-  return 0;
+  return kExitStopped;
 }
 
 }  // namespace haptree

@@ -4,6 +4,7 @@
 // DEVICE_STATE and applies the latest FEEDBACK. Link to the coupler: LCM, or same-host shared memory
 // (latest value) mirrored onto LCM at --mirror-rate-hz for lcm-logger.
 #include <array>
+#include <cstdio>
 #include <atomic>
 #include <cstdint>
 #include <map>
@@ -16,7 +17,9 @@
 #include "haptree/bus/origin.hpp"
 #include "haptree/safety.hpp"
 #include "haptree/bus/shm_channel.hpp"
+#include "haptree/device/buttons.hpp"
 #include "haptree/device/device.hpp"
+#include "haptree/device/registry.hpp"
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/safety.hpp"
@@ -41,6 +44,23 @@ struct DeviceBridgeOptions {
   std::string channel_suffix;
 };
 
+// Exit codes of run(): stopped on request (SIGINT/SIGTERM), or the device failed (a vendor error, a failed
+// read or write, a lost device): then the last thing written was zero force and torque, force output
+// was turned off and the device closed.
+constexpr int kExitStopped = 0;
+constexpr int kExitDeviceFault = 3;
+
+// The DeviceConfig a bridge with these options builds its device from (bus: for devices fed from it).
+device::DeviceConfig device_config(const DeviceBridgeOptions& o, bus::Bus* bus);
+
+// device_bridge --probe: opens the device, reads it for `duration_s`, prints to `out` its model, serial,
+// limits, position and buttons (one "key: value" per line), closes it. 0, or 1 after printing why to `err`.
+int probe_device(const DeviceBridgeOptions& o, double duration_s, std::FILE* out, std::FILE* err);
+
+// Fatal signals (SIGSEGV, SIGBUS, SIGFPE, SIGILL, SIGABRT) and std::terminate: zero force and force
+// output off on every open vendor device (device::emergency_stop_devices), then the default action.
+void install_device_crash_handlers();
+
 // The renderer a bridge with these options uses: its feedback watchdog, clamp and rate limit (default: the
 // clamp within feedback_ramp_down_s, i.e. 0.6 N per 1 ms tick for 3 N).
 FeedbackRenderer feedback_renderer(const DeviceBridgeOptions& o);
@@ -55,6 +75,10 @@ class DeviceBridge {
   int64_t feedbacks() const { return feedbacks_.load(); }
   double last_force_n() const { return last_force_n_.load(); }
   double max_force_seen_n() const { return max_force_n_.load(); }
+  // Why run() stopped with kExitDeviceFault ("" otherwise).
+  const std::string& fault() const { return fault_; }
+  // The force limit in use: --max-force-n, lowered to the device's own maximum if it reports a lower one.
+  double max_force_n() const { return opt_.max_force_n; }
   // Largest change of the rendered force between two device ticks (N): what the hand feels as a jerk.
   double max_force_step_n() const { return max_force_step_n_.load(); }
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
@@ -72,6 +96,9 @@ class DeviceBridge {
   bool from_followed_coupler(const lcmt_feedback& m, double now_s);   // one writer per FEEDBACK channel
   void poll_shm_feedback();
   void report_problems();
+  int loop(const std::atomic<bool>& stop);
+  // Zero force and torque (ramped at the rate limit when `ramp`), force output off, device closed.
+  void shut_device(bool ramp) noexcept;
   int64_t instance_id_;
   std::atomic<bool> ftz_daz_{false};
   bus::OriginLock coupler_lock_;   // used by the thread that receives feedback (handler for LCM, loop for shm)
@@ -97,6 +124,13 @@ class DeviceBridge {
   std::atomic<int64_t> readings_{0}, feedbacks_{0};
   std::atomic<double> last_force_n_{0}, max_force_n_{0}, max_force_step_n_{0}, feedback_time_s_{-1};
   FeedbackRenderer renderer_;      // loop thread: feedback -> the force written to the device
+  FeedbackRenderer torque_renderer_;   // the same for the torque (devices that render one)
+  bool render_torque_ = false;
+  device::ButtonStage buttons_;    // grab press count and clutch, for every kind
+  bool force_enabled_ = false;     // device force output on (after the first valid FEEDBACK)
+  bool shut_ = false;              // shut_device() ran: the device is closed
+  std::atomic<bool> valid_feedback_{false};
+  std::string fault_;
   // Last member: destroyed first, so no callback (they capture this) runs into freed members.
   bus::SubscriptionGuard subs_;
 };

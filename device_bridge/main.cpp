@@ -17,8 +17,12 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
   app.add_option("--device", o.device, "device id")->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press)")->capture_default_str();
-  app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE)");
+  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press) | openhaptics (3D Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon); docs/devices.md")->capture_default_str();
+  app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE; real devices: lib=PATH, "
+                                 "axes=y,z,x, openhaptics name=NAME, forcedimension id=N)");
+  bool probe = false;
+  app.add_flag("--probe", probe, "open the device, print its model, serial, limits, position and buttons, close it "
+                                 "and exit (0; 1 if it cannot be opened or read). Force output stays off");
   app.add_option("--rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
   haptree::bus::RealtimeOptions rt;   // issue 15.1: docs/benchmarks.md, "real-time haptic loop"
@@ -29,6 +33,9 @@ int main(int argc, char** argv) {
                  "bound on any change of the rendered force, N/s (a jerk guard at the hand); 0: the clamp within "
                  "5 ms, 600 N/s for 3 N. FEEDBACK older than 10 ms ramps to zero in 5 ms, and back in over 0.1 s")
       ->check(CLI::Range(0.0, 1e6))->capture_default_str();
+  app.add_option("--feedback-timeout-s", o.feedback_timeout_s,
+                 "FEEDBACK older than this ramps the force to zero (the device's own watchdog), s")
+      ->check(CLI::Range(1e-4, 10.0))->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   o.busy_poll = rt.busy_poll;
   for (const auto& s : kv) {
@@ -39,6 +46,8 @@ int main(int argc, char** argv) {
     }
     o.options[s.substr(0, eq)] = s.substr(eq + 1);
   }
+  if (probe) return haptree::probe_device(o, 0.2, stdout, stderr);
+  haptree::install_device_crash_handlers();   // a crash still writes zero force to a real device
   o.shm = b.shm;
   o.mirror_rate_hz = b.mirror_rate_hz;
   o.channel_suffix = b.channel_suffix;
@@ -55,6 +64,9 @@ int main(int argc, char** argv) {
     haptree::DeviceBridge bridge(bus, o);
     const int rc = bridge.run(g_stop);
     handler.stop();
+    if (rc == haptree::kExitDeviceFault)
+      spdlog::critical("device_bridge {}: {}; zero force and torque written, force output off, device closed",
+                       o.device, bridge.fault());
     spdlog::info("device_bridge: {} readings, {} feedbacks, max |f| {:.3f} N, pose-to-force latency p50 {:.1f} us "
                  "p99 {:.1f} us ({} samples), p99.9 {:.1f} us, max force step {:.4f} N/tick",
                  bridge.readings(), bridge.feedbacks(), bridge.max_force_seen_n(), bridge.latency_percentile_us(0.5),

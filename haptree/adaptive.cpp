@@ -1,9 +1,13 @@
 #include "haptree/adaptive.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <mutex>
+#include <thread>
 
 #include "haptree/dca.hpp"
 
@@ -34,6 +38,16 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   const int nn = t.nnodes(), nb = m.nbodies;
   active.assign(nn, 0);
   frontier_of_body.assign(nb, -1);
+  coarse_of.assign(nn, -1);
+  X_R.assign(nn, Mat3::Identity());
+  X_r.assign(nn, Vec3::Zero());
+  fine_frontier.reserve(nn);
+  scratch_hn.assign(nn, Vec6::Zero());
+  scratch_nodes.reserve(nn);
+  scratch_joints.reserve(nb);
+  scratch_union.reserve(nn);
+  scan_loaded.reserve(nb);
+  scratch_mark.assign(nn, 0);
   ref_body.assign(nn, -1);
   for (int node = nn - 1; node >= 0; --node)
     ref_body[node] = t.is_leaf(node) ? t.body[node] : std::min(ref_body[t.P[node]], ref_body[t.Q[node]]);
@@ -510,8 +524,9 @@ void lock_velocities(const Model& m, Data& d, State& st, AdaptiveData& ad) {
 
 namespace {
 
-// Frontier caches from a full forward_kinematics in `d`.
-void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
+// Region lists and frontier caches (fine = coarse) from ad.active and a full forward_kinematics
+// in `d`. O(n).
+void build_caches(const Model& m, Data& d, AdaptiveData& ad) {
   const auto& t = m.tree;
   const int nn = t.nnodes();
   ad.active_nodes.clear();
@@ -572,11 +587,23 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
     ad.comp_com[F] = single ? m.com[ref] : com;
     ad.comp_Ic[F] = single ? m.inertia[ref] : Ic;
   }
+  ad.fine_frontier = ad.frontier;
+  for (int F : ad.frontier) {
+    ad.coarse_of[F] = F;
+    ad.X_R[F].setIdentity();
+    ad.X_r[F].setZero();
+  }
+}
+
+// Inertia-form active nodes (ALGORITHMS §14.2) of the region in ad (the frontier's comp_ground
+// must be set). Entries of inertia_form and if_top are expected clear. O(|active|).
+void build_inertia_form(const Model& m, AdaptiveData& ad) {
+  const auto& t = m.tree;
+  std::vector<int>& stack = ad.scratch_stack;
   // Inertia-form active nodes (children first: their ids are larger). The cases and their
   // readers are dca.cpp's; a side read as an inertia must be a leaf (not the ground) or such a
   // node, a projected one-handle side may also be in mobility form (one_handle_inertia inverts
   // its Φ), and a pin joint to the ground must be active.
-  std::fill(ad.inertia_form.begin(), ad.inertia_form.end(), 0);
   auto inertia_side = [&](int X) {
     return t.is_leaf(X) ? t.body[X] != 0 : ad.active[X] && ad.inertia_form[X];
   };
@@ -601,13 +628,22 @@ void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
     ad.inertia_form[node] = ok;
   }
   ad.if_bodies.clear();
-  std::fill(ad.if_top.begin(), ad.if_top.end(), 0);
   for (int node : ad.active_nodes) {
     if (!ad.inertia_form[node] || (t.up[node] >= 0 && ad.inertia_form[t.up[node]])) continue;
     ad.if_top[ad.ref_body[node]] = 1;
     for_each_body(t, node, stack, [&](int k) { ad.if_bodies.push_back(k); });
   }
   std::sort(ad.if_bodies.begin(), ad.if_bodies.end());
+}
+
+// Frontier caches from a full forward_kinematics in `d`. O(n).
+void build_region(const Model& m, Data& d, State& st, AdaptiveData& ad) {
+  ++ad.region_version;
+  ad.step_work += m.tree.nnodes() + m.nbodies;
+  build_caches(m, d, ad);
+  std::fill(ad.inertia_form.begin(), ad.inertia_form.end(), 0);
+  std::fill(ad.if_top.begin(), ad.if_top.end(), 0);
+  build_inertia_form(m, ad);
   // V1: inactive joints do not move; moving ones are locked impulsively.
   lock_velocities(m, d, st, ad);
   ad.body_terms_current = false;
@@ -631,14 +667,20 @@ void set_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
   ad.region_selected = false;   // an explicit region: no selection to check against
 }
 
-double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
-                            const AdaptiveOptions& opt) {
+namespace {
+
+// The selection proper (§9): full-articulated coefficients, the check of the region in force
+// (ad.active_nodes, ad.frontier), the greedy walk; leaves the new region in ad.active, its DOFs in
+// `dofs`, and returns its neglected metric. Needs no frontier cache (the background worker runs it).
+double select_core(const Model& m, Data& d, const State& st, AdaptiveData& ad,
+                   const AdaptiveOptions& opt, int& dofs_out) {
   const auto& t = m.tree;
   // Full-articulated coefficients: every joint free (§9); cached Φ, W, Ψ where nothing moved.
   const bool refresh = !opt.incremental_metric || !ad.metric_cached ||
                        (opt.exact_refresh_every > 0 &&
                         ad.selections_since_refresh + 1 >= opt.exact_refresh_every);
   metric_pass(m, d, st, ad, refresh);
+  ad.step_work += m.tree.nnodes() + m.nbodies;
   ad.selections_since_refresh = refresh ? 0 : ad.selections_since_refresh + 1;
   MetricCache mc{m, d, ad};
   auto top_down = [&](int node) {   // world W of the node and Φ of its children, then §7
@@ -692,8 +734,23 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
       std::push_heap(heap.begin(), heap.end());
     }
   }
+  for (int b : ad.keep_active_bodies)
+    for (int node = t.up[t.leaf_of_body[b]]; node >= 0 && !ad.active[node]; node = t.up[node]) {
+      ad.active[node] = 1;
+      dofs += m.v_num[t.joint[node]];
+    }
+  dofs_out = dofs;
+  return std::max(0.0, frontier_sum);
+}
+
+}  // namespace
+
+double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
+                            const AdaptiveOptions& opt) {
+  int dofs = 0;
+  const double neglected = select_core(m, d, st, ad, opt, dofs);
   build_region(m, d, st, ad);
-  ad.report.neglected_metric = std::max(0.0, frontier_sum);
+  ad.report.neglected_metric = neglected;
   ad.report.active_dofs = dofs;
   ad.report.selections++;
   ad.last_options = opt;
@@ -756,17 +813,21 @@ static void reduced_kinematics(const Model& m, Data& d, const State& st,
   }
   for (int J : ad.active_joints) {
     const int p = m.parent[J];
-    const int Fp = ad.frontier_of_body[p];
+    const int fp = ad.frontier_of_body[p];
+    const int Fp = ad.coarse_of[fp];
     const int ref = ad.ref_body[Fp];
-    const Mat3 Rp = d.R[ref] * ad.local_R[p];
-    const Vec3 lp = d.R[ref] * ad.local_r[p];
+    // p's pose relative to its frontier node: fine node's placement, then p's in the fine node.
+    const Mat3 lR = ad.X_R[fp] * ad.local_R[p];
+    const Vec3 lr = ad.X_r[fp] + ad.X_R[fp] * ad.local_r[p];
+    const Mat3 Rp = d.R[ref] * lR;
+    const Vec3 lp = d.R[ref] * lr;
     joint_placement(m, J, st.q, Rp, d.R[J], d.d[J]);
     ad.pred_offset[J] = lp + d.d[J];
     d.r[J] = d.r[ref] + ad.pred_offset[J];
     d.R[p] = Rp;
     d.r[p] = d.r[ref] + lp;
     const Vec6 vp = shift_motion(ad.ref_velocity[Fp], lp);
-    ad.ref_velocity[ad.frontier_of_body[J]] = joint_motion_terms(m, d, J, st.qd, vp);
+    ad.ref_velocity[ad.coarse_of[ad.frontier_of_body[J]]] = joint_motion_terms(m, d, J, st.qd, vp);
   }
 }
 
@@ -817,11 +878,13 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
     }
   }
   auto add_load = [&](int k) {
-    const int F = ad.frontier_of_body[k];
+    const int f = ad.frontier_of_body[k], F = ad.coarse_of[f];
     if (ad.comp_ground[F]) return;
     const int ref = ad.ref_body[F];
-    d.f_total[ref] += shift_force(st.f_ext[k], -(d.R[ref] * ad.local_r[k]));
+    const Vec3 lr = ad.X_r[f] + ad.X_R[f] * ad.local_r[k];
+    d.f_total[ref] += shift_force(st.f_ext[k], -(d.R[ref] * lr));
   };
+  std::int64_t work = static_cast<std::int64_t>(ad.frontier.size() + ad.active_joints.size());
   if (ad.scan_forces) {
     // 8 bodies at a time: a branch-free test that vectorizes (the bits of each value without its
     // sign: non-zero for every x != 0 and NaN, zero for ±0, as isZero(0)); only a group holding a
@@ -829,6 +892,8 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
     static_assert(sizeof(Vec6) == 6 * sizeof(double), "f_ext is read as one array");
     const double* f = st.f_ext.empty() ? nullptr : st.f_ext[0].data();
     constexpr int kGroup = 8;
+    ad.scan_loaded.clear();
+    work += m.nbodies;
     for (int k0 = 1; k0 < m.nbodies; k0 += kGroup) {
       const int k1 = std::min(m.nbodies, k0 + kGroup);
       std::uint64_t bits = 0;
@@ -847,10 +912,14 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
       }
       if (!bits) continue;
       for (int k = k0; k < k1; ++k)
-        if (!st.f_ext[k].isZero(0)) add_load(k);
+        if (!st.f_ext[k].isZero(0)) {
+          add_load(k);
+          ad.scan_loaded.push_back(k);
+        }
     }
   } else {
     for (int k : ad.loaded_bodies) add_load(k);
+    work += static_cast<std::int64_t>(ad.loaded_bodies.size());
   }
   std::int64_t up_count = 0;
   for (int F : ad.frontier) {
@@ -872,7 +941,7 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
     // Handle point offsets from local data: 0 for the joint entering F (its successor is the
     // reference body), the predecessor-side offset for joints leaving F.
     auto offset = [&](int jx) {
-      return ad.frontier_of_body[jx] == F ? Vec3::Zero() : ad.pred_offset[jx];
+      return ad.coarse_of[ad.frontier_of_body[jx]] == F ? Vec3::Zero() : ad.pred_offset[jx];
     };
     // Φ_xy = M_x I⁻¹ M_yᵀ with M_x = [[1, 0], [−S_x, 1]], S_x = [o_x]×, I⁻¹ = [[A, B], [L, D]]:
     // M_x I⁻¹ = [[A, B], [L − S_x A, D − S_x B]] =: [[A, B], [U_x, V_x]], and
@@ -922,6 +991,7 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
   for (int root : t.roots)
     for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
   for (int node : ad.active_nodes) dca_top_down_node(m, d, node);
+  ad.step_work += work + up_count + static_cast<std::int64_t>(ad.active_nodes.size());
   ad.report.nodes_bottom_up = up_count;
   ad.report.nodes_top_down = static_cast<std::int64_t>(ad.active_nodes.size());
   ad.report.active_nodes = static_cast<int>(ad.active_nodes.size());
@@ -939,22 +1009,371 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
   return d.qdd;
 }
 
+// ---------------------------------------------------------------------------------------------
+// Background selection. The worker owns a Data, a State and an AdaptiveData of its own (its
+// incremental metric caches persist between its selections). A job is the state of the step it
+// was asked at and the region in force then; it returns the new region and the frontier caches of
+// the *union* of both regions (fine level): no joint inside a union frontier node moves while the
+// old region is in force (V1), so those caches are still exact when the main thread installs them.
+struct AsyncSelector {
+  explicit AsyncSelector(const Model& model) : m(model), d(model), st(model), ad(model) {
+    const int nn = model.tree.nnodes(), nb = model.nbodies;
+    in_active_nodes.reserve(nn);
+    in_frontier.reserve(nn);
+    new_nodes.reserve(nn);
+    new_joints.reserve(nb);
+    loaded.reserve(nb);
+    th = std::thread([this] { loop(); });
+  }
+  ~AsyncSelector() {
+    {
+      std::lock_guard<std::mutex> lk(mu);
+      quit = true;
+    }
+    cv.notify_all();
+    th.join();
+  }
+  void loop() {
+    std::unique_lock<std::mutex> lk(mu);
+    for (;;) {
+      cv.wait(lk, [&] { return quit || status == kQueued; });
+      if (quit) return;
+      lk.unlock();
+      run();
+      lk.lock();
+      status = kDone;
+      cv.notify_all();
+    }
+  }
+  void run() {
+    const auto& t = m.tree;
+    ad.active_nodes = in_active_nodes;
+    ad.frontier = in_frontier;
+    ad.region_selected = in_region_selected;
+    int dofs = 0;
+    neglected = select_core(m, d, st, ad, opt, dofs);
+    active_dofs = dofs;
+    rep = ad.report;
+    new_nodes.clear();
+    new_joints.clear();
+    for (int node = 0; node < t.nnodes(); ++node)
+      if (ad.active[node]) {
+        new_nodes.push_back(node);
+        new_joints.push_back(t.joint[node]);
+      }
+    std::sort(new_joints.begin(), new_joints.end());
+    for (int node : in_active_nodes) ad.active[node] = 1;
+    build_caches(m, d, ad);   // the union region: fine frontier lists and caches
+  }
+  enum Status { kIdle, kQueued, kDone };
+  const Model& m;
+  Data d;
+  State st;
+  AdaptiveData ad;
+  std::thread th;
+  std::mutex mu;
+  std::condition_variable cv;
+  bool quit = false;
+  std::atomic<int> status{kIdle};
+  // Job.
+  AdaptiveOptions opt;
+  std::vector<int> in_active_nodes, in_frontier, loaded;
+  bool in_region_selected = false;
+  std::int64_t version = 0, asked_at = 0;
+  bool stale = false;
+  // Result (besides the fine caches in ad).
+  std::vector<int> new_nodes, new_joints;
+  double neglected = 0;
+  int active_dofs = 0;
+  AdaptiveReport rep;
+};
+
+AsyncSelectorHandle::~AsyncSelectorHandle() { delete p; }
+
+namespace {
+
+// Copies the state of this step (q, q̇, τ, the loaded bodies' f_ext) and the region in force to the
+// worker and starts it. O(nq + nv) copies (memcpy) plus O(|region| + |loaded|).
+void post_selection(const Model& m, const State& st, AdaptiveData& ad, const AdaptiveOptions& opt) {
+  AsyncSelector& w = *ad.worker.p;
+  w.st.q = st.q;
+  w.st.qd = st.qd;
+  w.st.tau = st.tau;
+  w.st.t = st.t;
+  for (int k : w.loaded) w.st.f_ext[k].setZero();
+  w.loaded = ad.scan_forces ? ad.scan_loaded : ad.loaded_bodies;
+  for (int k : w.loaded) w.st.f_ext[k] = st.f_ext[k];
+  w.opt = opt;
+  w.opt.background_selection = false;
+  w.in_active_nodes = ad.active_nodes;
+  w.in_frontier = ad.frontier;
+  w.in_region_selected = ad.region_selected;
+  w.ad.keep_active_bodies = ad.keep_active_bodies;
+  w.version = ad.region_version;
+  w.asked_at = ad.step_count;
+  w.stale = false;
+  ad.step_work += static_cast<std::int64_t>(ad.active_nodes.size() + ad.frontier.size() + w.loaded.size());
+  {
+    std::lock_guard<std::mutex> lk(w.mu);
+    w.status = AsyncSelector::kQueued;
+  }
+  w.cv.notify_all();
+  (void)m;
+}
+
+// Installs the worker's region: the union's fine caches are swapped in (O(1)); poses and velocities
+// of the fine nodes from the current q, q̇ over the union's joints; the momentum of the moving fine
+// nodes for the impulsive lock; the coarse level (frontier in force) over the fine one; the lock by
+// one hybrid pass on the new region. O(|old region| + |new region|).
+void install_selection(const Model& m, Data& d, State& st, AdaptiveData& ad, AsyncSelector& w) {
+  const auto& t = m.tree;
+  std::int64_t work = 0;
+  std::swap(ad.frontier_of_body, w.ad.frontier_of_body);
+  std::swap(ad.local_R, w.ad.local_R);
+  std::swap(ad.local_r, w.ad.local_r);
+  std::swap(ad.comp_mass, w.ad.comp_mass);
+  std::swap(ad.comp_com, w.ad.comp_com);
+  std::swap(ad.comp_Ic, w.ad.comp_Ic);
+  std::swap(ad.comp_ground, w.ad.comp_ground);
+  ad.fine_frontier.assign(w.ad.frontier.begin(), w.ad.frontier.end());
+  // 1. Fine nodes as frontier nodes of the union region: their poses and velocities now.
+  for (int f : ad.fine_frontier) {
+    ad.coarse_of[f] = f;
+    ad.X_R[f].setIdentity();
+    ad.X_r[f].setZero();
+  }
+  std::swap(ad.frontier, ad.fine_frontier);
+  std::vector<int>& union_joints = ad.scratch_joints;
+  union_joints.assign(w.ad.active_joints.begin(), w.ad.active_joints.end());
+  std::swap(ad.active_joints, union_joints);
+  reduced_kinematics(m, d, st, ad);
+  std::swap(ad.active_joints, union_joints);
+  std::swap(ad.frontier, ad.fine_frontier);
+  work += static_cast<std::int64_t>(ad.fine_frontier.size() + union_joints.size());
+  // Joints of the union that the new region locks (only they can move now).
+  auto& joint_new = ad.scratch_joint_active;   // (nbodies), all zero between uses
+  for (int J : w.new_joints) joint_new[J] = 1;
+  bool any = false;
+  for (int J : union_joints)
+    if (!joint_new[J] && m.v_num[J] > 0 && !st.qd.segment(m.v_adr[J], m.v_num[J]).isZero(0)) any = true;
+  // 2. Momenta (lock_velocities' h, from fine composites): the subtree momentum at each joint.
+  State& impulse = ad.impulse;
+  if (any) {
+    auto& hn = ad.scratch_hn;
+    for (int f : ad.fine_frontier) {
+      if (ad.comp_ground[f]) {
+        hn[f].setZero();
+        continue;
+      }
+      const Mat3& R = d.R[ad.ref_body[f]];
+      const Mat3 Ic = R * ad.comp_Ic[f] * R.transpose();
+      hn[f] = spatial_inertia(ad.comp_mass[f], R * ad.comp_com[f], Ic) * ad.ref_velocity[f];
+    }
+    for (auto it = union_joints.rbegin(); it != union_joints.rend(); ++it) {
+      const int J = *it;
+      const Vec6& h = hn[ad.frontier_of_body[J]];
+      if (joint_new[J]) {
+        const int a = m.v_adr[J];
+        impulse.q.segment(m.q_adr[J], q_num(m, J)) = st.q.segment(m.q_adr[J], q_num(m, J));
+        switch (m.joint_type[J]) {
+          case JointType::kRevolute:
+          case JointType::kPrismatic: impulse.tau(a) = d.S[J].dot(h); break;
+          case JointType::kSpherical: impulse.tau.segment<3>(a) = d.R[J].transpose() * h.head<3>(); break;
+          case JointType::kFree:
+            impulse.tau.segment<3>(a) = d.R[J].transpose() * h.head<3>();
+            impulse.tau.segment<3>(a + 3) = d.R[J].transpose() * h.tail<3>();
+            break;
+          case JointType::kFixed: break;
+        }
+      }
+      const int fp = ad.frontier_of_body[m.parent[J]];
+      hn[fp] += shift_force(h, -ad.pred_offset[J]);
+    }
+  }
+  // 3. The coarse level: the new region's frontier nodes over the fine ones.
+  auto& old_active = ad.scratch_mark;   // (nnodes), all zero between uses
+  for (int node : ad.active_nodes) {
+    old_active[node] = 1;
+    ad.active[node] = 0;
+    ad.inertia_form[node] = 0;
+    d.kind[node] = NodeKind::kRigid;
+  }
+  for (int k : ad.if_bodies) ad.if_top[k] = 0;
+  ad.active_nodes.assign(w.new_nodes.begin(), w.new_nodes.end());
+  ad.active_joints.assign(w.new_joints.begin(), w.new_joints.end());
+  for (int node : ad.active_nodes) {
+    ad.active[node] = 1;
+    d.kind[node] = NodeKind::kActive;
+  }
+  ad.frontier.clear();
+  for (int root : t.roots)
+    if (t.is_leaf(root) || !ad.active[root]) ad.frontier.push_back(root);
+  for (int node : ad.active_nodes)
+    for (int ch : {t.P[node], t.Q[node]})
+      if (t.is_leaf(ch) || !ad.active[ch]) ad.frontier.push_back(ch);
+  std::vector<int>& stack = ad.scratch_stack;
+  std::vector<int>& inner = ad.scratch_union;
+  for (int F : ad.frontier) {
+    ++work;
+    if (t.is_leaf(F) || !old_active[F]) continue;   // a fine node itself (identity placement)
+    // F was active: its inner joints (old region only) place its fine nodes, top-down.
+    inner.clear();
+    stack.assign(1, F);
+    const int ref = ad.ref_body[F];
+    while (!stack.empty()) {
+      const int n = stack.back();
+      stack.pop_back();
+      ++work;
+      if (!t.is_leaf(n) && old_active[n]) {
+        inner.push_back(t.joint[n]);
+        stack.push_back(t.P[n]);
+        stack.push_back(t.Q[n]);
+      } else {
+        ad.coarse_of[n] = F;
+      }
+    }
+    std::sort(inner.begin(), inner.end());
+    for (int J : inner) {
+      const int p = m.parent[J], fp = ad.frontier_of_body[p];
+      const Mat3 lR = ad.X_R[fp] * ad.local_R[p];
+      const Vec3 lr = ad.X_r[fp] + ad.X_R[fp] * ad.local_r[p];
+      const int f = ad.frontier_of_body[J];
+      Vec3 dj;
+      joint_placement(m, J, st.q, lR, ad.X_R[f], dj);
+      ad.X_r[f] = lr + dj;
+    }
+    // Composite of F from its fine nodes (as build_caches from bodies).
+    double M = 0;
+    Vec3 mc = Vec3::Zero();
+    bool ground = false;
+    auto each_fine = [&](auto&& fn) {
+      stack.assign(1, F);
+      while (!stack.empty()) {
+        const int n = stack.back();
+        stack.pop_back();
+        if (!t.is_leaf(n) && old_active[n]) {
+          stack.push_back(t.P[n]);
+          stack.push_back(t.Q[n]);
+        } else {
+          fn(n);
+        }
+      }
+    };
+    each_fine([&](int f) {
+      ground = ground || ad.comp_ground[f];
+      M += ad.comp_mass[f];
+      mc += ad.comp_mass[f] * (ad.X_r[f] + ad.X_R[f] * ad.comp_com[f]);
+    });
+    const Vec3 com = M > 0 ? Vec3(mc / M) : Vec3::Zero();
+    Mat3 Ic = Mat3::Zero();
+    each_fine([&](int f) {
+      const Vec3 dk = ad.X_r[f] + ad.X_R[f] * ad.comp_com[f] - com;
+      Ic += ad.X_R[f] * ad.comp_Ic[f] * ad.X_R[f].transpose() +
+            ad.comp_mass[f] * (dk.squaredNorm() * Mat3::Identity() - dk * dk.transpose());
+    });
+    ad.comp_ground[F] = ground;
+    ad.comp_mass[F] = M;
+    ad.comp_com[F] = com;
+    ad.comp_Ic[F] = Ic;
+    (void)ref;
+  }
+  for (int node : w.in_active_nodes) old_active[node] = 0;
+  build_inertia_form(m, ad);
+  for (int J : union_joints) d.qdd.segment(m.v_adr[J], m.v_num[J]).setZero();
+  // 4. The impulsive lock on the new region (lock_velocities' solve: H_aa⁻¹ p_a by one pass).
+  if (any) {
+    std::vector<int> no_loads;
+    std::swap(ad.loaded_bodies, no_loads);
+    const bool scan = ad.scan_forces;
+    ad.scan_forces = false;
+    ad.gravity_scale = 0;
+    adaptive_forward_dynamics(m, d, impulse, ad);
+    ad.gravity_scale = 1;
+    ad.scan_forces = scan;
+    std::swap(ad.loaded_bodies, no_loads);
+    for (int J : union_joints) {
+      const int a = m.v_adr[J], n = m.v_num[J];
+      if (joint_new[J]) st.qd.segment(a, n) = d.qdd.segment(a, n);
+      else st.qd.segment(a, n).setZero();
+      d.qdd.segment(a, n).setZero();
+      impulse.tau.segment(a, n).setZero();
+    }
+  }
+  for (int J : w.new_joints) joint_new[J] = 0;
+  ad.kin_current = false;
+  ad.body_terms_current = false;
+  ad.step_work += work;
+}
+
+}  // namespace
+
+void start_background_selection(const Model& m, AdaptiveData& ad) {
+  if (!ad.worker.p) ad.worker.p = new AsyncSelector(m);
+}
+
+bool adaptive_selection_wait(AdaptiveData& ad) {
+  AsyncSelector* w = ad.worker.p;
+  if (!w || w->status.load() == AsyncSelector::kIdle) return false;
+  std::unique_lock<std::mutex> lk(w->mu);
+  w->cv.wait(lk, [&] { return w->status.load() != AsyncSelector::kQueued; });
+  return true;
+}
+
 const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, AdaptiveData& ad,
                                     const AdaptiveOptions& opt, double dt) {
   ad.report.reselected = false;
+  ad.step_work = 0;
+  AsyncSelector* w = ad.worker.p;
+  // A background selection that is done: installed if it was asked for the region still in force
+  // and the same options, else dropped.
+  if (w && w->status.load(std::memory_order_acquire) == AsyncSelector::kDone) {
+    if (!w->stale && w->version == ad.region_version && !options_changed(ad, opt) &&
+        opt.background_selection) {
+      const int T = static_cast<int>(w->asked_at - ad.selected_at);
+      const double A0 = ad.report.neglected_metric, T0 = ad.report.total_metric;
+      install_selection(m, d, st, ad, *w);
+      const std::int64_t selections = ad.report.selections;
+      ad.report = w->rep;
+      ad.report.selections = selections + 1;
+      ad.report.neglected_metric = w->neglected;
+      ad.report.active_dofs = w->active_dofs;
+      ad.report.reselected = true;
+      ad.report.handover_lag = static_cast<int>(ad.step_count - w->asked_at);
+      ad.selected_at = w->asked_at;
+      ad.steps_since_selection = ad.report.handover_lag;
+      if (opt.reselect_every <= 0) {
+        ad.interval = ad.report.check_exact < 0
+                          ? std::max(1, opt.interval_first)
+                          : next_interval(opt, std::max(1, T), A0, T0, ad.report.check_exact,
+                                          ad.report.neglected_metric, ad.report.total_metric);
+      }
+      ad.report.interval = ad.interval;
+    }
+    w->status.store(AsyncSelector::kIdle, std::memory_order_release);
+  }
+  bool post = false;
   if (reselection_due(ad, opt)) {
     const bool changed = options_changed(ad, opt) || !ad.region_selected;
-    const int T = ad.steps_since_selection;
-    const double A0 = ad.report.neglected_metric, T0 = ad.report.total_metric;
-    select_active_region(m, d, st, ad, opt);
-    ad.report.reselected = true;
-    if (opt.reselect_every <= 0) {
-      ad.interval = changed || ad.report.check_exact < 0
-                        ? std::max(1, opt.interval_first)
-                        : next_interval(opt, T, A0, T0, ad.report.check_exact,
-                                        ad.report.neglected_metric, ad.report.total_metric);
+    if (!changed && opt.background_selection && w) {
+      post = w->status.load(std::memory_order_acquire) == AsyncSelector::kIdle;   // else in flight
+    } else {
+      if (w) w->stale = true;
+      const int T = ad.steps_since_selection;
+      const double A0 = ad.report.neglected_metric, T0 = ad.report.total_metric;
+      select_active_region(m, d, st, ad, opt);
+      ad.report.reselected = true;
+      ad.report.handover_lag = 0;
+      ad.selected_at = ad.step_count;
+      if (opt.reselect_every <= 0) {
+        ad.interval = changed || ad.report.check_exact < 0
+                          ? std::max(1, opt.interval_first)
+                          : next_interval(opt, T, A0, T0, ad.report.check_exact,
+                                          ad.report.neglected_metric, ad.report.total_metric);
+      }
+      ad.report.interval = ad.interval;
+      // The worker is started with the first selection (allocations and all), not inside a step.
+      if (opt.background_selection && !w) ad.worker.p = new AsyncSelector(m);
     }
-    ad.report.interval = ad.interval;
   }
   ++ad.steps_since_selection;
   // The last step ended with the reduced kinematics of this q, q̇ (unless the caller changed the
@@ -963,6 +1382,9 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
   ad.report.kinematics_reused = reuse;
   ad.kin_current = false;
   hybrid_pass(m, d, st, ad, !reuse);
+  // The state at the start of this step (its loads just scanned) goes to the worker.
+  if (post) post_selection(m, st, ad, opt);
+  ad.report.selection_pending = ad.worker.p && ad.worker.p->status.load() != AsyncSelector::kIdle;
   for (int J : ad.active_joints) {
     const int a = m.v_adr[J], n = m.v_num[J];
     st.qd.segment(a, n) += dt * d.qdd.segment(a, n);
@@ -972,23 +1394,27 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
   reduced_kinematics(m, d, st, ad);
   active_state(m, st, ad, true);
   ad.kin_current = true;
+  ad.step_work += 2 * static_cast<std::int64_t>(ad.active_joints.size());
+  ++ad.step_count;
   st.t += dt;
   return ad.report;
 }
 
 void update_all_body_poses(const Model& m, Data& d, const AdaptiveData& ad) noexcept {
   for (int k = 0; k < m.nbodies; ++k) {
-    const int F = ad.frontier_of_body[k];
-    if (F < 0) continue;
-    const int ref = ad.ref_body[F];
+    const int f = ad.frontier_of_body[k];
+    if (f < 0) continue;
+    const int ref = ad.ref_body[ad.coarse_of[f]];
     if (k == ref) continue;
-    d.R[k] = d.R[ref] * ad.local_R[k];
-    d.r[k] = d.r[ref] + d.R[ref] * ad.local_r[k];
+    const Mat3 lR = ad.X_R[f] * ad.local_R[k];
+    const Vec3 lr = ad.X_r[f] + ad.X_R[f] * ad.local_r[k];
+    d.R[k] = d.R[ref] * lR;
+    d.r[k] = d.r[ref] + d.R[ref] * lr;
   }
   // d_k of a reference body is its joint's placement (reduced kinematics, or the selection's
   // forward kinematics for a rigid root); the hybrid pass reads it, so it is kept, not re-derived.
   for (int k = 1; k < m.nbodies; ++k) {
-    const int F = ad.frontier_of_body[k];
+    const int F = frontier_of(ad, k);
     if (F >= 0 && ad.ref_body[F] == k) continue;
     d.d[k] = d.r[k] - d.r[m.parent[k]];
   }

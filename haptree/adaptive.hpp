@@ -58,6 +58,17 @@ struct AdaptiveOptions {
   // Every this many selections the coefficients are recomputed from scratch (§10.4-A, the check
   // and reset of the incremental ones); 0: never, except when nothing is cached yet.
   int exact_refresh_every = 16;
+  // Background selection (ALGORITHMS §9, "selection off the step"): once a first region is in force,
+  // a due reselection is computed on a worker thread from a consistent copy of the state (q, q̇, τ
+  // and the loaded bodies' f_ext at the step it is due), while the steps go on with the region in
+  // force; the first adaptive_step after the worker is done installs the new region in
+  // O(|old region| + |new region|) (no pass over the whole tree inside a step). Every step's
+  // dynamics are exactly those of the region in force; the report's neglected metric is that of the
+  // region in force, evaluated at the state it was selected from. The handover step depends on the
+  // worker's speed (call adaptive_selection_wait for a reproducible one). false: every selection
+  // runs inside the step that is due, as a synchronous select_active_region. The first selection,
+  // and one after ε, the budget or the mode changed, are always synchronous.
+  bool background_selection = true;
 };
 
 struct AdaptiveReport {
@@ -78,6 +89,20 @@ struct AdaptiveReport {
   // recomputed (incremental_metric), and whether it was an exact refresh (every node in full).
   std::int64_t metric_nodes_full = 0, metric_nodes_bias = 0;
   bool exact_refresh = false;
+  // Background selection: a selection is being computed off the step; steps since it was asked for
+  // at the last handover (the region in force lagged the state it was selected from by this many).
+  bool selection_pending = false;
+  int handover_lag = 0;
+};
+
+struct AsyncSelector;   // adaptive.cpp: the background selection's worker (thread, copies)
+// Owner of the worker: a copied AdaptiveData starts without one (a worker serves one AdaptiveData).
+struct AsyncSelectorHandle {
+  AsyncSelectorHandle() = default;
+  AsyncSelectorHandle(const AsyncSelectorHandle&) {}
+  AsyncSelectorHandle& operator=(const AsyncSelectorHandle&) { return *this; }
+  ~AsyncSelectorHandle();   // stops and joins the worker
+  AsyncSelector* p = nullptr;
 };
 
 // Per-run adaptive workspace, sized once from the Model.
@@ -88,7 +113,18 @@ struct AdaptiveData {
   std::vector<int> active_nodes;       // ids ascending (top-down order)
   std::vector<int> frontier;           // non-active children of active nodes (+ rigid roots)
   std::vector<int> active_joints;      // ascending body order (reduced kinematics order)
-  std::vector<int> frontier_of_body;   // (nbodies) frontier node containing the body
+  // Two-level frontier: frontier_of_body[k] is the *fine* frontier node of body k, local_R/local_r
+  // (below) its pose relative to the fine node's reference body; coarse_of[f] is the frontier node
+  // in force that contains the fine node f, X_R[f]/X_r[f] the pose of f's reference body relative
+  // to the coarse node's (identity when f is itself a frontier node in force, as after every
+  // synchronous selection). A background handover swaps in the fine level computed off the step
+  // (the frontier of the union of the old and the new region, whose joints did not move meanwhile)
+  // and builds the coarse level over it in O(|old| + |new|). frontier_of(ad, k) is body k's node.
+  std::vector<int> frontier_of_body;   // (nbodies) fine frontier node containing the body
+  std::vector<int> fine_frontier;      // the fine frontier nodes
+  std::vector<int> coarse_of;          // (nnodes) frontier node in force of a fine node
+  std::vector<Mat3> X_R;               // (nnodes) fine reference pose in the coarse node's frame
+  std::vector<Vec3> X_r;               // (nnodes)
   // Composite rigid data of frontier nodes, in the reference body's frame.
   std::vector<int> ref_body;           // (nnodes) first (smallest-id) body of the node
   std::vector<double> comp_mass;       // (nnodes)
@@ -130,6 +166,9 @@ struct AdaptiveData {
   // them only by round-off.
   bool kin_current = false;
   std::vector<double> kin_q;
+  // Bodies whose leaf every selection keeps in the active tree (its whole root path active, beyond
+  // the budget if need be): grabbed bodies, whose coupling snapshot needs an active path.
+  std::vector<int> keep_active_bodies;
   // Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;
@@ -144,12 +183,58 @@ struct AdaptiveData {
   std::vector<std::pair<double, int>> heap;
   bool region_selected = false;   // the region came from select_active_region (checkable)
   int interval = 25;              // steps until the next selection (error-controlled mode)
+  std::int64_t region_version = 0;   // bumped by every region built in full (set/select)
+  std::int64_t step_count = 0;       // adaptive_step calls
+  std::int64_t selected_at = 0;      // step_count of the state the region in force was selected from
   // Scratch (sized once; nothing in a step or a selection allocates).
   std::vector<int> scratch_stack;
   std::vector<char> scratch_joint_active;
   std::vector<Vec6> scratch_h;
+  std::vector<Vec6> scratch_hn;        // (nnodes) fine-node momenta at a handover
+  std::vector<int> scratch_nodes, scratch_joints, scratch_union;
+  std::vector<int> scan_loaded;        // bodies the last force scan found loaded
+  std::vector<char> scratch_mark;      // (nnodes) zero between uses
   State impulse;
+  // Work of the last adaptive_step on the calling thread, in nodes and bodies visited (a measure
+  // of cost that does not depend on the machine; the background worker's is not counted).
+  std::int64_t step_work = 0;
+  AsyncSelectorHandle worker;
 };
+
+// Frontier node in force containing body k.
+inline int frontier_of(const AdaptiveData& ad, int k) {
+  const int f = ad.frontier_of_body[k];
+  return f < 0 ? -1 : ad.coarse_of[f];
+}
+
+// Starts the background selection's worker (its Data, State, AdaptiveData and thread) now, so that
+// its allocation is not paid inside a step; adaptive_step starts it with its first selection
+// otherwise. `model` must outlive `ad`.
+void start_background_selection(const Model& model, AdaptiveData& ad);
+
+// World pose of body k after an adaptive step, from its frontier node's reference body. O(1).
+inline void body_pose(const Data& d, const AdaptiveData& ad, int k, Mat3& R, Vec3& r) {
+  const int f = ad.frontier_of_body[k];
+  if (f < 0) {
+    R = d.R[k];
+    r = d.r[k];
+    return;
+  }
+  const int ref = ad.ref_body[ad.coarse_of[f]];
+  if (ref == k) {
+    R = d.R[k];
+    r = d.r[k];
+    return;
+  }
+  const Mat3 lR = ad.X_R[f] * ad.local_R[k];
+  const Vec3 lr = ad.X_r[f] + ad.X_R[f] * ad.local_r[k];
+  R = d.R[ref] * lR;
+  r = d.r[ref] + d.R[ref] * lr;
+}
+
+// Blocks until a pending background selection is computed (the next adaptive_step installs it);
+// returns false if none is pending. For reproducible runs and tests.
+bool adaptive_selection_wait(AdaptiveData& ad);
 
 // Acceleration metric coefficients (§8) of every node from a completed full DCA bottom-up pass.
 void compute_metric_coefficients(const Model& model, const Data& data, AdaptiveData& ad);

@@ -445,7 +445,9 @@ PYBIND11_MODULE(_core, m) {
       .def_readwrite("mode", &AdaptiveOptions::mode)
       .def_readwrite("epsilon", &AdaptiveOptions::epsilon)
       .def_readwrite("budget", &AdaptiveOptions::budget)
-      .def_readwrite("reselect_every", &AdaptiveOptions::reselect_every);
+      .def_readwrite("reselect_every", &AdaptiveOptions::reselect_every)
+      .def_readwrite("background_selection", &AdaptiveOptions::background_selection,
+                     "reselections computed on a worker thread, installed by a later step (default True)");
   py::class_<AdaptiveReport>(m, "AdaptiveReport", "Copy of AdaptiveData.report after a step.")
       .def_readonly("active_dofs", &AdaptiveReport::active_dofs)
       .def_readonly("active_nodes", &AdaptiveReport::active_nodes)

@@ -2,8 +2,9 @@
 # The README's test command: install what is missing, configure, build, run every test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install_deps.sh
-bash scripts/build.sh
+bash scripts/install_deps.sh --tests
+bash scripts/build.sh -DHAPTREE_BUILD_TESTS=ON -DHAPTREE_BUILD_BENCH=ON -DHAPTREE_BUILD_PYTHON=ON \
+                      -DHAPTREE_BUILD_JAVA=ON
 cd build
 ctest --output-on-failure -j "${HAPTREE_JOBS:-$(nproc)}" --timeout 900
 cd ..

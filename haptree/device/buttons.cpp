@@ -13,6 +13,8 @@ void ButtonStage::apply(DeviceReading& r) noexcept {
   if (clutched_) {
     offset_ = held_ - r.position_m;
     r.linear_velocity_mps.setZero();
+    r.position_m = held_;   // exactly where it was, not device + offset rounded
+    return;
   }
   r.position_m += offset_;
 }

@@ -96,8 +96,10 @@ constexpr const char* kInstallHint =
 
 // Servo ticks (~1 ms) after which a command not refreshed by the device loop is replaced by zero force.
 constexpr uint64_t kStaleTicks = 50;
-// No new servo sample for this long (device clock): the vendor's servo loop stopped.
-constexpr double kStalledS = 0.05;
+// No new servo sample for this long (device clock): the vendor's servo loop stopped. Long against the
+// 1 ms servo period so that a loaded host's scheduling hiccup is not a fault; the servo loop itself
+// zeroes a command older than kStaleTicks long before.
+constexpr double kStalledS = 0.25;
 
 struct Sample {
   uint64_t tick = 0;
@@ -185,7 +187,7 @@ class OpenHapticsDevice final : public Device {
       return Status::Error(err_);
     }
     if (s.tick == 0) return Status::Error("OpenHaptics: no servo sample yet");
-    if (t - last_new_s_ > kStalledS) return Status::Error("OpenHaptics servo loop stopped: no new sample for 50 ms");
+    if (t - last_new_s_ > kStalledS) return Status::Error("OpenHaptics servo loop stopped: no new sample for 250 ms");
     Mat3 R;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c) R(r, c) = s.transform[c * 4 + r];   // column-major

@@ -8,7 +8,8 @@
 // The HD frame (x right, y up, z towards the user) is haptree's: default axes=x,y,z.
 // Options: lib (default libHD.so, then libHD.so.3.4.0), name (device name from Touch_Setup; default
 // device), axes. Fail-safe: forces are rendered only while enabled and while the newest command is at
-// most 50 servo ticks old; an HD error latches the device to zero force and read() reports it.
+// most 50 servo ticks old; an HD error latches the device to zero force and read() reports it, as it
+// reports a servo loop that stopped (no new sample for 250 ms).
 #pragma once
 
 #include <memory>

@@ -1,4 +1,4 @@
-// Ideal-geometry builders for test molecules (ideal bond lengths, angles and torsions, written here).
+// Ideal-geometry builders for test molecules (the geometry of data/molecules/tools/build_models.py).
 #pragma once
 
 #include "haptree/molecule/structure.hpp"

@@ -192,6 +192,7 @@ def test_adaptive_step_report_and_full_equivalence():
     # Budget mode: the report counts the budget, the neglected metric is a part of the total, and
     # the inactive joints neither accelerate nor move.
     budget = haptree.AdaptiveOptions(budget=48, reselect_every=5)
+    budget.background_selection = False   # selections inside the due step: a fixed schedule
     s2, d2, ad2 = haptree.State(model), haptree.Data(model), haptree.AdaptiveData(model)
     s2.q, s2.tau = state.q, state.tau
     reports = [haptree.adaptive_step(model, d2, s2, ad2, budget, 1e-3) for _ in range(12)]

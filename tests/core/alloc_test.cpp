@@ -63,12 +63,36 @@ TEST(Allocation, SelectionAllocatesNothing) {
   AdaptiveOptions opt;
   opt.budget = 48;
   opt.reselect_every = 1;   // select at every step
+  opt.background_selection = false;
   adaptive_step(*model, d, st, ad, opt, 1e-3);
   const long before = haptree::testing::allocation_count();
   for (int i = 0; i < 5; ++i) adaptive_step(*model, d, st, ad, opt, 1e-3);
   EXPECT_EQ(haptree::testing::allocation_count() - before, 0);
   EXPECT_TRUE(ad.report.reselected);
   EXPECT_EQ(ad.report.selections, 6);
+}
+
+TEST(Allocation, BackgroundSelectionAndHandoverAllocateNothing) {
+  // The worker starts with the first selection; after that neither the steps that ask for a
+  // selection, nor the worker, nor the steps that install its region allocate.
+  auto model = make_protein_like({});
+  State st(*model);
+  Data d(*model);
+  AdaptiveData ad(*model);
+  AdaptiveOptions opt;
+  opt.budget = 48;
+  opt.reselect_every = 3;
+  ASSERT_TRUE(opt.background_selection);
+  st.f_ext[model->nbodies - 1](4) = 1.0;
+  adaptive_step(*model, d, st, ad, opt, 1e-3);
+  const long before = haptree::testing::allocation_count();
+  const std::int64_t selections = ad.report.selections;
+  for (int i = 0; i < 30; ++i) {
+    adaptive_selection_wait(ad);
+    adaptive_step(*model, d, st, ad, opt, 1e-3);
+  }
+  EXPECT_EQ(haptree::testing::allocation_count() - before, 0);
+  EXPECT_GE(ad.report.selections - selections, 5);
 }
 
 }  // namespace

@@ -20,6 +20,7 @@
 #include "haptree/dca.hpp"
 #include "haptree/fp_env.hpp"
 #include "haptree/lcmt_process_stats.hpp"
+#include "haptree/lcmt_scene_state.hpp"
 #include "haptree/scenes.hpp"
 #include "sim_server/sim_server.hpp"
 
@@ -629,6 +630,50 @@ TEST(Failsafe, CouplerFlushesSubnormalsOfIncomingSnapshots) {
   EXPECT_TRUE(coupler.counters().ftz_daz.load());
   EXPECT_FALSE(ScopedFlushDenormals::active()) << "the test thread's mode changed";
 #endif
+}
+
+// A press (button 0, the coupler picking: --grab-body -1) takes the body nearest to the device point
+// only within --grab-radius of it: a hardware device's stylus must be near a body to grab it.
+TEST(Failsafe, GrabTakesTheNearestBodyOnlyWithinTheGrabRadius) {
+  // Bodies 1 at the scene origin and 2 at x = 5; position scale 10: device x = 0.05 m is scene 0.5
+  // (body 1 within a radius of 1), device x = 0.25 m is scene 2.5 (2.5 from both: nothing).
+  for (const double device_x : {0.05, 0.25}) {
+    bus::Bus bus("memq://");
+    CouplerOptions co;
+    co.busy_wait = false;
+    co.rate_hz = 4000;
+    co.grab_body = -1;
+    co.grab_radius = 1.0;
+    Coupler coupler(bus, co);
+    std::mutex mu;
+    int32_t last_grab_body = -1;
+    bus.subscribe<lcmt_user_force>(bus::channel::user_force(0), [&](const lcmt_user_force& m, const std::string&) {
+      std::lock_guard<std::mutex> l(mu);
+      last_grab_body = m.grab_body;
+    });
+    bus::HandlerThread handler(bus, 2);
+    std::atomic<bool> stop{false};
+    std::thread loop([&] { coupler.run(stop); });
+    lcmt_scene_state scene{};
+    bus::stamp(scene, 5151);
+    scene.nbodies = 2;
+    scene.first_body = 1;
+    scene.total_bodies = 3;
+    scene.body_position = {{0, 0, 0}, {5, 0, 0}};
+    scene.body_orientation = {{1, 0, 0, 0}, {1, 0, 0, 0}};
+    scene.body_active = {1, 1};
+    bus.publish(bus::channel::scene_state(), scene);
+    FakeDevice dev(bus, 6161);
+    for (int i = 0; i < 200; ++i) {   // 200 ms of poses with the grab button held
+      dev.publish_one(6161, device_x, 1);
+      std::this_thread::sleep_for(1ms);
+    }
+    stop = true;
+    loop.join();
+    handler.stop();
+    std::lock_guard<std::mutex> l(mu);
+    EXPECT_EQ(last_grab_body, device_x < 0.1 ? 1 : 0) << "device x " << device_x << " m";
+  }
 }
 
 }  // namespace
