@@ -17,9 +17,9 @@ int main(int argc, char** argv) {
   haptree::bus::add_bus_options(app, b);
   std::vector<std::string> kv;
   app.add_option("--device", o.device, "device id")->check(CLI::Range(0, 1000000))->capture_default_str();
-  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press) | openhaptics (3D Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon); docs/devices.md")->capture_default_str();
+  app.add_option("--kind", o.kind, "scripted | virtual_hand | replay | browser (the mouse in the viewer's page; --option fallback=scripted keeps the script until the page's first press) | openhaptics (3D Systems Touch, Phantom) | forcedimension (omega, delta, sigma, lambda, Novint Falcon) | inverse3 (Haply Inverse3 through the Haply Inverse Service); docs/devices.md")->capture_default_str();
   app.add_option("--option", kv, "device option key=value (e.g. pull_distance_m=0.03, log=FILE; real devices: lib=PATH, "
-                                 "axes=y,z,x, openhaptics name=NAME, forcedimension id=N)");
+                                 "axes=y,z,x, openhaptics name=NAME, forcedimension id=N, inverse3 url=ws://127.0.0.1:10001 device_id=ID)");
   bool probe = false;
   app.add_flag("--probe", probe, "open the device, print its model, serial, limits, position and buttons, close it "
                                  "and exit (0; 1 if it cannot be opened or read). Force output stays off");

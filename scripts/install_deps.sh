@@ -10,7 +10,7 @@ BUILD_RUN=(
   liblcm-dev liblcm-bin libglib2.0-dev          # LCM (pkg-config lcm needs glib; lcm-gen)
   gemmi-dev tao-pegtl-dev                       # PDB / mmCIF reading (haptree/molecule)
   liburdfdom-dev                                # URDF models
-  libwebsocketpp-dev libasio-dev                # viewer: HTTP + WebSocket (standalone asio)
+  libwebsocketpp-dev libasio-dev                # viewer (HTTP + WebSocket) and the inverse3 device (standalone asio)
   libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*), viewer tokens
   libssl-dev                                    # viewer over https/wss (websocketpp's asio TLS, OpenSSL)
 )
@@ -28,6 +28,7 @@ TESTS=(
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   help2man dpkg-dev                             # man pages and .debs (cpack; scripts/test_install.sh)
+  qemu-user                                     # default binaries run as an older CPU (tests/isa)
   openssl                                       # the viewer's TLS test (openssl req, s_client)
   doxygen                                       # API reference (CMake target docs; CTest label docs)
 )

@@ -5,6 +5,10 @@ cd "$(dirname "$0")/.."
 bash scripts/install_deps.sh --tests
 bash scripts/build.sh -DHAPTREE_BUILD_TESTS=ON -DHAPTREE_BUILD_BENCH=ON -DHAPTREE_BUILD_PYTHON=ON \
                       -DHAPTREE_BUILD_JAVA=ON
+# install_package (label install) also installs the .debs with dpkg -i and removes them, as root.
+if [ "$(id -u)" -eq 0 ]; then
+  export HAPTREE_TEST_DPKG_INSTALL=${HAPTREE_TEST_DPKG_INSTALL:-1}
+fi
 cd build
 ctest --output-on-failure -j "${HAPTREE_JOBS:-$(nproc)}" --timeout 900
 cd ..

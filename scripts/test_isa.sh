@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
 # Builds and runs the test suite at three x86-64 ISA levels, each in its own build directory:
-#   generic  build-generic  -DHAPTREE_NATIVE=OFF        (baseline x86-64: SSE2, no FMA)
-#   v3       build-v3       -DHAPTREE_MARCH=x86-64-v3   (AVX2 + FMA)
+#   generic  build-generic  the default options         (x86-64-v2: SSE4.2, no FMA; the vectorised
+#                                                         kernels chosen at run time from the CPU)
+#   v3       build-v3       -DHAPTREE_MARCH=x86-64-v3   (AVX2 + FMA everywhere)
 #   native   build-native   -DHAPTREE_NATIVE=ON         (-march=native of this machine)
 # Floating-point results differ between them (vector width, FMA contraction), so a tolerance that
-# holds on only one of them is caught here. ccache is used when installed.
+# holds on only one of them is caught here. The run-time kernels are compared level against level
+# by isa_kernel_test (HAPTREE_ISA=generic|avx2|avx512 caps them for a whole run). ccache is used
+# when installed.
 #
 # Usage: bash scripts/test_isa.sh [--configs "generic v3 native"] [--label-regex REGEX]
 #                                 [--targets "T1 T2 ..."] [--numerics] [--build-only] [--jobs N]
@@ -81,7 +84,8 @@ for c in $configs; do
   echo "== $c: ctest ${labels:+-L \"$labels\"}"
   if (cd "$dir" && ctest "${args[@]}") > "$dir/test_isa.ctest.log" 2>&1; then r=ok; else r=FAILED; status=1; fi
   line=$(grep -E "tests passed|tests failed" "$dir/test_isa.ctest.log" | tail -1)
-  summary+=("$c ($(grep -m1 -o -- '-march=[^ ]*' "$dir/compile_commands.json" || echo 'no -march')): $r: $line")
+  march=$(grep -o -- '-march=[^ ]*' "$dir/compile_commands.json" | head -1)
+  summary+=("$c (${march:-no -march}): $r: $line")
   [ "$r" = FAILED ] && grep -E "\(Failed\)|\(Timeout\)|\*\*\*" "$dir/test_isa.ctest.log" | head -20 || true
   if [ -n "$report" ]; then
     echo "== $c: stress_report --sections $report"

@@ -154,6 +154,7 @@ SimServer::SimServer(bus::Bus& bus, const SimServerOptions& options)
     users_.push_back(std::move(slot));
   }
   forward_kinematics(*model_, *data_, state_->q);
+  if (!molecule_) start_background_selection(*model_, *ad_);   // allocated now, not in a step
   checkpoint_ = std::make_unique<State>(*state_);
   if (!opt_.trajectory.empty()) {   // trajectory: atoms of a molecule, else one pseudo-atom per body
     mol::TrajectoryOptions to;
@@ -234,7 +235,10 @@ void SimServer::step_once() {
       u->grab_point_msg = gp;
       u->body = msg.grab_body;
       const Vec3 p(msg.grab_point[0], msg.grab_point[1], msg.grab_point[2]);
-      u->local_point = d.R[u->body].transpose() * (p - d.r[u->body]);
+      Mat3 Rb;
+      Vec3 rb;
+      body_pose(d, *ad_, u->body, Rb, rb);   // the body may sit inside a rigid region: O(1)
+      u->local_point = Rb.transpose() * (p - rb);
     }
     u->grabbing = want;
     if (want) {
@@ -246,29 +250,30 @@ void SimServer::step_once() {
     }
     u->applied_norm.store(u->f_u.tail<3>().norm(), std::memory_order_relaxed);
   }
-  // 2. Selection: our own, every reselect_every steps, then the grabbed leaves' root paths are forced
-  //    active (set_active_region), so each grabbed body is a leaf of the active tree.
-  const bool reselect = grab_changed || ad_->steps_since_selection >= std::max(1, opt_.reselect_every);
-  if (reselect) {
+  // 2. Selection. Every grabbed body's root path stays active (AdaptiveData::keep_active_bodies),
+  //    so each grabbed body is a leaf of the active tree and its snapshot is O(log n). A new grab or
+  //    a reset selects at once, in the step; the periodic reselection of robot scenes runs in the
+  //    background (adaptive_step), off the step. Molecules select here every reselect_every steps:
+  //    the force field's rigid regions follow each selection.
+  keep_.clear();
+  for (auto& u : users_)
+    if (u->grabbing && std::find(keep_.begin(), keep_.end(), u->body) == keep_.end()) keep_.push_back(u->body);
+  if (ad_->keep_active_bodies != keep_) ad_->keep_active_bodies = keep_;
+  const bool periodic = ad_->steps_since_selection >= std::max(1, opt_.reselect_every);
+  if (grab_changed || resync_ || (molecule_ && periodic)) {
     if (molecule_) molecule_->scene.force_field->clear_rigid_regions();
     select_active_region(m, d, st, *ad_, adaptive_);
-    if (any_grab) {
-      active_mask_ = ad_->active;
-      for (auto& u : users_) {
-        if (!u->grabbing) continue;
-        for (int node = m.tree.up[m.tree.leaf_of_body[u->body]]; node >= 0; node = m.tree.up[node])
-          active_mask_[node] = 1;
-      }
-      set_active_region(m, d, st, *ad_, active_mask_);
-    }
+    resync_ = false;
     if (molecule_) molecule_->scene.force_field->set_rigid_regions(ad_->frontier_of_body);
   }
-  // 3. External forces: force field (molecules), then user forces moved to the body origin.
-  update_all_body_poses(m, d, *ad_);
+  // 3. External forces: force field (molecules, every body), then user forces moved to the body
+  //    origin. Robot scenes touch only the grabbed bodies (the hybrid pass reads the list).
   if (molecule_) {
+    update_all_body_poses(m, d, *ad_);
     molecule_->scene.compute(d, st.f_ext);
   } else {
-    for (auto& f : st.f_ext) f.setZero();
+    for (int k : loaded_) st.f_ext[k].setZero();
+    loaded_.clear();
   }
   for (auto& u : users_) {
     if (!u->grabbing) continue;
@@ -277,10 +282,19 @@ void SimServer::step_once() {
     Vec6 f0 = u->f_u;
     f0.head<3>() += arm.cross(u->f_u.tail<3>());   // = grab_force_at_body_origin for the same pose
     st.f_ext[u->body] += f0;
+    if (!molecule_ && std::find(loaded_.begin(), loaded_.end(), u->body) == loaded_.end())
+      loaded_.push_back(u->body);
   }
-  // 4. Step; adaptive_step must not reselect on its own (we did above).
+  if (!molecule_) {
+    ad_->scan_forces = false;
+    if (ad_->loaded_bodies != loaded_) ad_->loaded_bodies = loaded_;
+  }
+  // 4. Step (robot scenes: with the background reselection every reselect_every steps).
   AdaptiveOptions step_opt = adaptive_;
-  step_opt.reselect_every = std::numeric_limits<int>::max();
+  if (molecule_) {
+    step_opt.reselect_every = std::numeric_limits<int>::max();
+    step_opt.background_selection = false;
+  }
   const AdaptiveReport& rep = adaptive_step(m, d, st, *ad_, step_opt, opt_.dt);
   active_dofs_.store(rep.active_dofs, std::memory_order_relaxed);
   just_reset_ = guard_state();
@@ -292,8 +306,16 @@ void SimServer::step_once() {
 // at rest, and reselect. Copies are into preallocated vectors; logging only on the rare reset.
 bool SimServer::guard_state() {
   State& st = *state_;
-  const double rate = st.qd.size() ? st.qd.cwiseAbs().maxCoeff() : 0.0;
-  const bool healthy = st.q.allFinite() && std::isfinite(rate) && rate <= opt_.max_joint_rate;
+  // Only the active joints moved in this step (the others keep q, and q̇ = 0): O(|active|).
+  const Model& m = *model_;
+  double rate = 0;
+  bool finite = true;
+  for (int J : ad_->active_joints) {
+    const int a = m.q_adr[J], n = (J + 1 < m.nbodies ? m.q_adr[J + 1] : m.nq) - a;
+    finite = finite && st.q.segment(a, n).allFinite();
+    if (m.v_num[J] > 0) rate = std::max(rate, st.qd.segment(m.v_adr[J], m.v_num[J]).cwiseAbs().maxCoeff());
+  }
+  const bool healthy = finite && std::isfinite(rate) && rate <= opt_.max_joint_rate;
   if (healthy) {
     if (++steps_since_checkpoint_ >= opt_.checkpoint_every) {
       checkpoint_->q = st.q;
@@ -313,7 +335,8 @@ bool SimServer::guard_state() {
   st.qd.setZero();
   st.t = t;
   forward_kinematics(*model_, *data_, st.q);
-  ad_->steps_since_selection = 1 << 30;   // reselect (and rebuild the frontier caches) next step
+  ad_->steps_since_selection = 1 << 30;
+  resync_ = true;   // reselect (and rebuild the frontier caches) in the next step, synchronously
   steps_since_checkpoint_ = 0;
   ++version_;
   return true;
@@ -322,7 +345,8 @@ bool SimServer::guard_state() {
 void SimServer::publish_snapshots() {
   const Model& m = *model_;
   Data& d = *data_;
-  update_all_body_poses(m, d, *ad_);
+  // No pose update: a grabbed body is a leaf of the active tree, so its pose and its handles'
+  // offsets are the step's own (reduced kinematics), and the snapshot reads only its root path.
   for (auto& u : users_) {
     if (!u->grabbing) continue;
     // The coefficients in Data are those of the pass just done (poses at the start of the step).
@@ -366,20 +390,35 @@ void SimServer::record_trajectory() {
   }
 }
 
+// The scene state at the display rate, in chunks spread over the next steps (each chunk's poses
+// from its own step, O(chunk) each, from the frontier caches): no step pays for every body.
 void SimServer::publish_scene_state(double step_ms) {
+  scene_step_ms_ = step_ms;
+  scene_chunk_ = 0;
+  publish_scene_chunks();
+}
+
+void SimServer::publish_scene_chunks() {
+  if (scene_chunk_ < 0) return;
   const Model& m = *model_;
   const Data& d = *data_;
   // 56 bytes of pose + 1 of active flag per body: chunks of <= 1000 bodies stay within one 64 KB datagram.
   constexpr int kChunk = 1000;
-  lcmt_scene_state s;
+  const int chunks = (m.nbodies + kChunk - 1) / kChunk;
+  // Enough per step to finish well within one display period at the step rate.
+  const double steps_per_frame =
+      (opt_.rate_hz > 0 ? opt_.rate_hz : 1000.0) / std::max(1e-3, opt_.display_rate_hz);
+  const int per_step = std::max(1, static_cast<int>(std::ceil(2.0 * chunks / std::max(1.0, steps_per_frame))));
+  lcmt_scene_state& s = scene_msg_;
   bus::stamp(s, instance_id_);
   s.version = version_;
   s.sim_time = state_->t;
   s.active_dofs = ad_->report.active_dofs;
   s.neglected_metric = ad_->report.neglected_metric;
-  s.step_ms = step_ms;
+  s.step_ms = scene_step_ms_;
   s.total_bodies = m.nbodies;
-  for (int first = 0; first < m.nbodies; first += kChunk) {
+  for (int c = 0; c < per_step && scene_chunk_ < chunks; ++c, ++scene_chunk_) {
+    const int first = scene_chunk_ * kChunk;
     const int n = std::min(kChunk, m.nbodies - first);
     s.first_body = first;
     s.nbodies = n;
@@ -388,14 +427,18 @@ void SimServer::publish_scene_state(double step_ms) {
     s.body_active.resize(n);
     for (int i = 0; i < n; ++i) {
       const int k = first + i;
-      s.body_position[i] = {d.r[k].x(), d.r[k].y(), d.r[k].z()};
-      const Quat q(d.R[k]);
+      Mat3 R;
+      Vec3 r;
+      body_pose(d, *ad_, k, R, r);
+      s.body_position[i] = {r.x(), r.y(), r.z()};
+      const Quat q(R);
       s.body_orientation[i] = {q.w(), q.x(), q.y(), q.z()};
       const int node = k > 0 ? m.tree.owner_of_joint[k] : -1;
       s.body_active[i] = node >= 0 && ad_->active[node] ? 1 : 0;
     }
     bus_.publish(bus::channel::scene_state(opt_.channel_suffix), s);
   }
+  if (scene_chunk_ >= chunks) scene_chunk_ = -1;
 }
 
 // Every field set (issue 11, defect 6): counters from SimServerCounters, latencies from the last step
@@ -467,6 +510,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
     step_once();
     if (!just_reset_) publish_snapshots();   // after a reset the coefficients are stale
     if (trajectory_ && !just_reset_) record_trajectory();
+    publish_scene_chunks();   // the rest of a scene state, a few chunks per step
     const auto b = Clock::now();
     const double ms = std::chrono::duration<double, std::milli>(b - a).count();
     step_ms_.store(ms, std::memory_order_relaxed);
@@ -474,7 +518,7 @@ int SimServer::run(const std::atomic<bool>& stop) {
     steps_.fetch_add(1, std::memory_order_relaxed);
     window_step_ms_sum_ += ms;
     window_step_ms_max_ = std::max(window_step_ms_max_, ms);
-    if (opt_.display_rate_hz > 0 && b >= next_display) {
+    if (opt_.display_rate_hz > 0 && b >= next_display && scene_chunk_ < 0) {
       publish_scene_state(ms);
       next_display = b + std::chrono::duration_cast<Clock::duration>(
                              std::chrono::duration<double>(1.0 / opt_.display_rate_hz));

@@ -15,6 +15,7 @@
 #include "haptree/bus/bus.hpp"
 #include "haptree/coupling.hpp"
 #include "haptree/data.hpp"
+#include "haptree/lcmt_scene_state.hpp"
 #include "haptree/lcmt_user_force.hpp"
 
 namespace haptree {
@@ -133,7 +134,13 @@ class SimServer {
   int64_t steps_since_checkpoint_ = 0;
   std::atomic<int64_t> resets_{0};
   bool just_reset_ = false;
+  bool resync_ = false;             // next step selects synchronously (after a reset of the state)
+  std::vector<int> loaded_, keep_;  // bodies with a user force (robot scenes); grabbed bodies
+  int scene_chunk_ = -1;            // next scene-state chunk to publish (-1: none pending)
+  lcmt_scene_state scene_msg_;      // reused (no allocation per chunk once sized)
+  double scene_step_ms_ = 0;
   bool guard_state();
+  void publish_scene_chunks();
   // Trajectory (--trajectory): written after a healthy step when due; an I/O error stops the
   // recording (one log line), never the session.
   std::unique_ptr<mol::TrajectoryRecorder> trajectory_;

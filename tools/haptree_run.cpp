@@ -322,11 +322,13 @@ int main(int argc, char** argv) {
     for (size_t u = 0; u < couplers.size(); ++u) {
       const auto& k = couplers[u]->counters();
       std::printf("  user %zu: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
-                  "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us\n",
+                  "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us, "
+                  "%lld watchdog trips\n",
                   u, bodies[u], static_cast<long long>(k.iterations.load()),
                   static_cast<long long>(k.snapshots_accepted.load()),
                   static_cast<long long>(couplers[u]->rejected_messages()), bridges[u]->max_force_seen_n(),
-                  bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99));
+                  bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99),
+                  static_cast<long long>(couplers[u]->watchdog_trips()));
     }
     std::printf("  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
     if (viewer)

@@ -24,6 +24,7 @@
 #include <cstdio>
 #include <cstring>
 
+#include "haptree/isa.hpp"
 #include "tests/stress/random_models.hpp"
 #include "tests/stress/stress_scenes.hpp"
 
@@ -111,6 +112,8 @@ void section_isa() {
   add("AVX-512F", true);
 #endif
   std::printf("| compiled for | %s |\n", isa.c_str());
+  std::printf("| run-time kernel level (haptree/isa.hpp) | %s (best on this CPU: %s) |\n",
+              haptree::isa::name(haptree::isa::active()), haptree::isa::name(haptree::isa::best()));
   // Contraction probe: a·a − fl(a·a) is 0 when rounded twice, the exact 2⁻⁶⁰ when fused.
   volatile double va = 1 + std::ldexp(1.0, -30);
   const double a = va;

@@ -7,6 +7,7 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/device/browser.hpp"
 #include "haptree/device/forcedimension.hpp"
+#include "haptree/device/inverse3.hpp"
 #include "haptree/device/openhaptics.hpp"
 #include "haptree/device/replay.hpp"
 #include "haptree/device/simulated.hpp"
@@ -101,6 +102,19 @@ struct Registry {
       }
       return std::make_unique<BrowserDevice>(c.spec, p, *c.bus, bus::channel::pointer(c.device_id, c.channel_suffix),
                                              std::move(fallback));
+    };
+    factories["inverse3"] = [](const DeviceConfig& c) -> std::unique_ptr<Device> {
+      Inverse3Params p;
+      p.url = option_string(c, "url", p.url);
+      p.device_id = option_string(c, "device_id", p.device_id);
+      p.grip_id = option_string(c, "grip_id", p.grip_id);
+      p.axes = option_string(c, "axes", p.axes);
+      p.origin_m = option_vec3(c, "origin_m", p.origin_m);
+      p.rate_hz = option_double(c, "rate_hz", c.spec.rate_hz);
+      p.timeout_s = option_double(c, "timeout_s", p.timeout_s);
+      p.connect_timeout_s = option_double(c, "connect_timeout_s", p.connect_timeout_s);
+      p.force_key = option_string(c, "force_key", p.force_key);
+      return std::make_unique<Inverse3Device>(c.spec, p);
     };
   }
 };

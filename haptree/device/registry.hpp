@@ -1,7 +1,8 @@
 // Devices by name, so real SDKs plug in without the processes knowing them:
 //   haptree::device::register_device("phantom", [](const DeviceConfig& c) { return std::make_unique<...>(c); });
-// Built in: "scripted", "virtual_hand", "replay", "browser", and the real devices "openhaptics" and
-// "forcedimension" (vendor libraries loaded at run time; options below; docs/devices.md).
+// Built in: "scripted", "virtual_hand", "replay", "browser", and the real devices "openhaptics",
+// "forcedimension" (vendor libraries loaded at run time) and "inverse3" (the Haply Inverse Service over
+// a local WebSocket); options below; docs/devices.md.
 #pragma once
 
 #include <functional>
@@ -25,6 +26,8 @@ struct DeviceConfig {
   //    ("x,y,z"), pull_distance_m, approach_s, settle_s, pull_s, hold_s, rest_s
   //  virtual_hand: mass_kg, stiffness_n_per_m, damping_n_s_per_m, max_substep_s
   //  replay: log (path, required), channel (required), loop (0/1)
+  //  inverse3 (Haply Inverse Service, haptree/device/inverse3.hpp): url, device_id, grip_id, axes, origin_m,
+  //    rate_hz (default the bridge's rate), timeout_s, connect_timeout_s, force_key (vector|values)
   //  browser (the mouse in the viewer's page, needs bus): fallback (scripted|none, default none; the
   //    scripted options above apply to it), timeout_s, smoothing_s, switch_s
   //  real devices: axes (vendor axes -> haptree's, AxisMap; each family documents its default), lib

@@ -2,9 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
-#ifdef __AVX__
-#include <immintrin.h>
-#endif
+
+#include "haptree/isa.hpp"
+#include "haptree/molecule/cluster_kernel.hpp"
 
 namespace haptree::ff {
 
@@ -377,299 +377,6 @@ void Evaluator::build_clusters() {
   prune_valid_ = false;   // new entries: split again
 }
 
-// Switched non-bonded pairs, atom × 4-atom cluster ("1×4"; GROMACS' nbnxm cluster pairs with one
-// i atom, since this kernel is double precision): an entry evaluates atom i against the 4 slots of
-// one cluster with vector loads from the slot arrays (no per-pair gather or compaction) and vector
-// stores of the 4 j forces (no scatter). Lanes outside the entry's mask (pairs not listed, padding,
-// i itself) get r² = far, beyond r_off, where the switch is exactly 0 (x clamped to 1: S = 1 − 10 +
-// 15 − 6 = 0 and dS = 0 in exact arithmetic, even with FMA), so they add exact zeros; so do listed
-// pairs at or beyond r_off, as in the reference. 1/r is double precision from rsqrt + Newton steps
-// y ← y(1.5 − 0.5 r² y²), whose relative error e maps to ≤ 1.5e² (+ rounding): AVX-512VL rsqrt14
-// (|e₀| < 2⁻¹⁴) and two steps (5.6e-9, then 4.7e-17), else SSE's rsqrt (|e₀| ≤ 1.5·2⁻¹²) and three
-// (2.1e-7, 6.3e-14, 6e-27): the result is within the few ulp of rounding of 1/sqrt(r²), so nothing
-// is single precision. F_i and the energies are summed in 4 lanes (round-off-level reordering
-// against the reference). Without AVX the same lanes run scalar with sqrt and a division.
-#ifdef __AVX__
-namespace {
-// 4-lane (AVX) and, with AVX-512, 8-lane double vectors behind one set of names, so that one
-// kernel body (pair_lanes) serves both widths. The 8-lane kernel takes two entries of a row at once
-// (lanes 0-3: one cluster, 4-7: the next), which doubles the work per instruction on CPUs with
-// 512-bit units (AMD Zen 5, Intel server cores) and costs one insert/extract per load/store.
-inline __m256d vadd(__m256d a, __m256d b) { return _mm256_add_pd(a, b); }
-inline __m256d vsub(__m256d a, __m256d b) { return _mm256_sub_pd(a, b); }
-inline __m256d vmul(__m256d a, __m256d b) { return _mm256_mul_pd(a, b); }
-inline __m256d vmin(__m256d a, __m256d b) { return _mm256_min_pd(a, b); }
-inline __m256d vmax(__m256d a, __m256d b) { return _mm256_max_pd(a, b); }
-inline __m256d fmadd(__m256d a, __m256d b, __m256d c) {   // a·b + c
-#ifdef __FMA__
-  return _mm256_fmadd_pd(a, b, c);
-#else
-  return _mm256_add_pd(_mm256_mul_pd(a, b), c);
-#endif
-}
-inline __m256d fnmadd(__m256d a, __m256d b, __m256d c) {   // c − a·b
-#ifdef __FMA__
-  return _mm256_fnmadd_pd(a, b, c);
-#else
-  return _mm256_sub_pd(c, _mm256_mul_pd(a, b));
-#endif
-}
-inline double hsum(__m256d v) {
-  alignas(32) double a[4];
-  _mm256_store_pd(a, v);
-  return (a[0] + a[1]) + (a[2] + a[3]);
-}
-inline __m256d inv_sqrt(__m256d r2) {
-#ifdef __AVX512VL__
-  // rsqrt14 (|e₀| < 2⁻¹⁴), then one refinement of order 4: with ε = 1 − r²y₀² (|ε| < 1.3e-4),
-  // 1/√r² = y₀(1 − ε)^(−1/2) = y₀(1 + ε/2 + 3ε²/8 + 5ε³/16 + 35ε⁴/128 …): the ε⁴ term left out is
-  // < 1e-16 relative.
-  const __m256d y = _mm256_rsqrt14_pd(r2);
-  const __m256d eps = fnmadd(_mm256_mul_pd(r2, y), y, _mm256_set1_pd(1.0));
-  const __m256d p = fmadd(fmadd(_mm256_set1_pd(0.3125), eps, _mm256_set1_pd(0.375)), eps, _mm256_set1_pd(0.5));
-  return fmadd(_mm256_mul_pd(y, eps), p, y);
-#else
-  // SSE rsqrt (|e₀| ≤ 1.5·2⁻¹²), three Newton steps y ← y(1.5 − 0.5r²y²): e ↦ ≤ 1.5e² + rounding.
-  __m256d y = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(r2)));
-  const __m256d h = _mm256_mul_pd(_mm256_set1_pd(0.5), r2), c15 = _mm256_set1_pd(1.5);
-  for (int k = 0; k < 3; ++k) y = _mm256_mul_pd(y, fnmadd(h, _mm256_mul_pd(y, y), c15));
-  return y;
-#endif
-}
-struct LaneMasks {
-  alignas(32) std::int64_t m[16][4];
-};
-constexpr LaneMasks make_lane_masks() {
-  LaneMasks t{};
-  for (int k = 0; k < 16; ++k)
-    for (int l = 0; l < 4; ++l) t.m[k][l] = (k >> l & 1) ? -1 : 0;
-  return t;
-}
-constexpr LaneMasks kLanes = make_lane_masks();
-// r² in the lanes of mask m (bit l: lane l), `far` elsewhere.
-inline __m256d masked(__m256d far, __m256d r2, int m) {
-  return _mm256_blendv_pd(far, r2, _mm256_castsi256_pd(_mm256_load_si256(reinterpret_cast<const __m256i*>(kLanes.m[m]))));
-}
-template <class D> D vset(double x);
-template <> inline __m256d vset<__m256d>(double x) { return _mm256_set1_pd(x); }
-
-#ifdef __AVX512F__
-inline __m512d vadd(__m512d a, __m512d b) { return _mm512_add_pd(a, b); }
-inline __m512d vsub(__m512d a, __m512d b) { return _mm512_sub_pd(a, b); }
-inline __m512d vmul(__m512d a, __m512d b) { return _mm512_mul_pd(a, b); }
-inline __m512d vmin(__m512d a, __m512d b) { return _mm512_min_pd(a, b); }
-inline __m512d vmax(__m512d a, __m512d b) { return _mm512_max_pd(a, b); }
-inline __m512d fmadd(__m512d a, __m512d b, __m512d c) { return _mm512_fmadd_pd(a, b, c); }
-inline __m512d fnmadd(__m512d a, __m512d b, __m512d c) { return _mm512_fnmadd_pd(a, b, c); }
-inline __m256d hi4(__m512d v) { return _mm512_extractf64x4_pd(v, 1); }   // lanes 4-7
-inline double hsum(__m512d v) {
-  return hsum(_mm512_castpd512_pd256(v)) + hsum(hi4(v));
-}
-inline __m512d inv_sqrt(__m512d r2) {   // as the 4-lane AVX-512VL version above
-  const __m512d y = _mm512_rsqrt14_pd(r2);
-  const __m512d eps = fnmadd(_mm512_mul_pd(r2, y), y, _mm512_set1_pd(1.0));
-  const __m512d p = fmadd(fmadd(_mm512_set1_pd(0.3125), eps, _mm512_set1_pd(0.375)), eps, _mm512_set1_pd(0.5));
-  return fmadd(_mm512_mul_pd(y, eps), p, y);
-}
-inline __m512d masked(__m512d far, __m512d r2, int m) {
-  return _mm512_mask_blend_pd(static_cast<__mmask8>(m), far, r2);
-}
-template <> inline __m512d vset<__m512d>(double x) { return _mm512_set1_pd(x); }
-// Lanes 0-3 from p0, 4-7 from p1 (both 32-byte aligned slot arrays).
-inline __m512d load2(const double* p0, const double* p1) {
-  return _mm512_insertf64x4(_mm512_zextpd256_pd512(_mm256_load_pd(p0)), _mm256_load_pd(p1), 1);
-}
-inline void add_store2(double* p0, double* p1, __m512d v) {   // p0[0..3] += v[0..3], then p1 += v[4..7]
-  _mm256_store_pd(p0, _mm256_add_pd(_mm256_load_pd(p0), _mm512_castpd512_pd256(v)));
-  _mm256_store_pd(p1, _mm256_add_pd(_mm256_load_pd(p1), hi4(v)));
-}
-#endif
-
-// Switch constants and the per-pair arithmetic of cluster_rows, for either width. Up to
-// cluster_rows' end two GCC 12 warnings are off: a vector type's alignment attribute dropped as a
-// template argument (not needed there), and the "undefined" source vector inside its own
-// _mm512_extractf64x4_pd (a false positive).
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wignored-attributes"
-#pragma GCC diagnostic ignored "-Wuninitialized"
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-template <class D>
-struct PairConsts {
-  D one, zero, far, iw, x0, c6, c12, c2, c1n, s6n, s15, s10n, d30, d60;
-  PairConsts(double r_on, double r_off)
-      : one(vset<D>(1.0)), zero(vset<D>(0.0)), far(vset<D>((r_off + 1.0) * (r_off + 1.0))),
-        iw(vset<D>(1.0 / (r_off - r_on))), x0(vset<D>(-r_on / (r_off - r_on))), c6(vset<D>(6.0)),
-        c12(vset<D>(-12.0)), c2(vset<D>(-2.0)), c1n(vset<D>(-1.0)), s6n(vset<D>(-6.0)), s15(vset<D>(15.0)),
-        s10n(vset<D>(-10.0)), d30(vset<D>(30.0 / (r_off - r_on))), d60(vset<D>(2.0 * (30.0 / (r_off - r_on)))) {}
-};
-// Lanes of atom i against j: vq = k q_i q_j, vs = σ_ij, ve = 4ε_ij, r2 already masked. Returns
-// (dE/dr)/r; adds S·E_c and S·E_lj to vec, vel.
-template <bool DDD, class D>
-inline D pair_lanes(const PairConsts<D>& c, D r2, D vq, D vs, D ve, D& vec, D& vel) {
-  const D inv_r = inv_sqrt(r2);
-  const D inv_r2 = vmul(inv_r, inv_r);
-  const D r = vmul(r2, inv_r);
-  const D Ec = DDD ? vmul(vq, inv_r2) : vmul(vq, inv_r);
-  const D sr2 = vmul(vmul(vs, vs), inv_r2);
-  const D s6 = vmul(vmul(sr2, sr2), sr2);
-  const D a6 = vmul(ve, s6);                       // 4ε (σ/r)⁶
-  const D El = fmadd(a6, s6, vsub(c.zero, a6));    // 4ε((σ/r)¹² − (σ/r)⁶)
-  // (dE/dr)/r = (−2E_c [DDD] or −E_c, + 4ε(−12(σ/r)¹² + 6(σ/r)⁶)) / r²
-  const D rdE = fmadd(DDD ? c.c2 : c.c1n, Ec, vmul(a6, fmadd(c.c12, s6, c.c6)));
-  const D dE_r = vmul(rdE, inv_r2);
-  // Switch in Horner form: S = 1 + x³(−10 + x(15 − 6x)), dS/dr = x²(−30 + x(60 − 30x))/w; at x = 1
-  // both are exactly 0 (all steps exact: integers, and 60/w = 2·(30/w)).
-  const D xs = vmin(vmax(fmadd(r, c.iw, c.x0), c.zero), c.one);
-  const D x2 = vmul(xs, xs), x3 = vmul(x2, xs);
-  const D S = fmadd(x3, fmadd(fmadd(c.s6n, xs, c.s15), xs, c.s10n), c.one);
-  const D dS = vmul(x2, fmadd(fnmadd(c.d30, xs, c.d60), xs, vsub(c.zero, c.d30)));
-  vec = fmadd(S, Ec, vec);
-  vel = fmadd(S, El, vel);
-  return fmadd(S, dE_r, vmul(vmul(dS, vadd(Ec, El)), inv_r));
-}
-}  // namespace
-#endif
-
-template <bool DDD>
-void Evaluator::cluster_rows(const int* crow, const int* cent, double& ec_out, double& el_out) {
-  const double r_on = o_.r_on;
-  const double kq = DDD ? kCoulomb / 40.0 : kCoulomb;
-  const double *X = cx_.data(), *Y = cy_.data(), *Z = cz_.data();
-  const double *Q = cq_.data(), *SG = cs_.data(), *E2 = ce_.data();
-  double *FX = cfx_.data(), *FY = cfy_.data(), *FZ = cfz_.data();
-#ifdef __AVX__
-  const PairConsts<__m256d> c4(r_on, o_.r_off);
-  __m256d vec = c4.zero, vel = c4.zero;
-#ifdef __AVX512F__
-  const PairConsts<__m512d> c8(r_on, o_.r_off);
-  __m512d vec8 = c8.zero, vel8 = c8.zero;
-#endif
-  for (int s = 0; s < nslots_; ++s) {
-    int k = crow[s];
-    const int e = crow[s + 1];
-    if (k == e) continue;
-    __m256d fix = c4.zero, fiy = c4.zero, fiz = c4.zero;
-#ifdef __AVX512F__
-    {   // two entries (clusters) per step
-      const __m512d xi = _mm512_set1_pd(X[s]), yi = _mm512_set1_pd(Y[s]), zi = _mm512_set1_pd(Z[s]);
-      const __m512d qi = _mm512_set1_pd(kq * Q[s]), si = _mm512_set1_pd(SG[s]), ei = _mm512_set1_pd(E2[s]);
-      __m512d gx = c8.zero, gy = c8.zero, gz = c8.zero;
-      for (; k + 1 < e; k += 2) {
-        const int w0 = cent[k], w1 = cent[k + 1];
-        const int j0 = (w0 >> 4) << 2, j1 = (w1 >> 4) << 2;
-        const __m512d vx = _mm512_sub_pd(xi, load2(X + j0, X + j1));
-        const __m512d vy = _mm512_sub_pd(yi, load2(Y + j0, Y + j1));
-        const __m512d vz = _mm512_sub_pd(zi, load2(Z + j0, Z + j1));
-        const __m512d r2 = masked(c8.far, fmadd(vz, vz, fmadd(vy, vy, _mm512_mul_pd(vx, vx))),
-                                  (w0 & 15) | (w1 & 15) << 4);
-        const __m512d dE = pair_lanes<DDD>(c8, r2, _mm512_mul_pd(qi, load2(Q + j0, Q + j1)),
-                                           _mm512_add_pd(si, load2(SG + j0, SG + j1)),
-                                           _mm512_mul_pd(ei, load2(E2 + j0, E2 + j1)), vec8, vel8);
-        const __m512d fx = _mm512_mul_pd(dE, vx), fy = _mm512_mul_pd(dE, vy), fz = _mm512_mul_pd(dE, vz);
-        gx = _mm512_sub_pd(gx, fx);   // f_i = −dE/dr · d/r, d = x_i − x_j
-        gy = _mm512_sub_pd(gy, fy);
-        gz = _mm512_sub_pd(gz, fz);
-        add_store2(FX + j0, FX + j1, fx);   // f_j = −f_i
-        add_store2(FY + j0, FY + j1, fy);
-        add_store2(FZ + j0, FZ + j1, fz);
-      }
-      fix = _mm256_add_pd(_mm512_castpd512_pd256(gx), hi4(gx));
-      fiy = _mm256_add_pd(_mm512_castpd512_pd256(gy), hi4(gy));
-      fiz = _mm256_add_pd(_mm512_castpd512_pd256(gz), hi4(gz));
-    }
-#endif
-    if (k < e) {   // one entry (every entry without AVX-512, the odd last one with it)
-      const __m256d xi = _mm256_set1_pd(X[s]), yi = _mm256_set1_pd(Y[s]), zi = _mm256_set1_pd(Z[s]);
-      for (; k < e; ++k) {
-        const int w = cent[k];
-        const int j = (w >> 4) << 2;
-        const __m256d vx = _mm256_sub_pd(xi, _mm256_load_pd(X + j));
-        const __m256d vy = _mm256_sub_pd(yi, _mm256_load_pd(Y + j));
-        const __m256d vz = _mm256_sub_pd(zi, _mm256_load_pd(Z + j));
-        const __m256d r2 = masked(c4.far, fmadd(vz, vz, fmadd(vy, vy, _mm256_mul_pd(vx, vx))), w & 15);
-        const __m256d dE = pair_lanes<DDD>(c4, r2, _mm256_mul_pd(_mm256_set1_pd(kq * Q[s]), _mm256_load_pd(Q + j)),
-                                           _mm256_add_pd(_mm256_set1_pd(SG[s]), _mm256_load_pd(SG + j)),
-                                           _mm256_mul_pd(_mm256_set1_pd(E2[s]), _mm256_load_pd(E2 + j)), vec, vel);
-        const __m256d fx = _mm256_mul_pd(dE, vx), fy = _mm256_mul_pd(dE, vy), fz = _mm256_mul_pd(dE, vz);
-        fix = _mm256_sub_pd(fix, fx);
-        fiy = _mm256_sub_pd(fiy, fy);
-        fiz = _mm256_sub_pd(fiz, fz);
-        _mm256_store_pd(FX + j, _mm256_add_pd(_mm256_load_pd(FX + j), fx));
-        _mm256_store_pd(FY + j, _mm256_add_pd(_mm256_load_pd(FY + j), fy));
-        _mm256_store_pd(FZ + j, _mm256_add_pd(_mm256_load_pd(FZ + j), fz));
-      }
-    }
-    FX[s] += hsum(fix);
-    FY[s] += hsum(fiy);
-    FZ[s] += hsum(fiz);
-  }
-#ifdef __AVX512F__
-  ec_out += hsum(vec8);
-  el_out += hsum(vel8);
-#endif
-  ec_out += hsum(vec);
-  el_out += hsum(vel);
-#else
-  const double inv_w = 1.0 / (o_.r_off - o_.r_on);
-  const double far = (o_.r_off + 1.0) * (o_.r_off + 1.0);
-  double ec = 0, el = 0;
-  for (int s = 0; s < nslots_; ++s) {
-    const int b = crow[s], e = crow[s + 1];
-    if (b == e) continue;
-    const double qi = kq * Q[s];
-    double fix = 0, fiy = 0, fiz = 0;
-    for (int k = b; k < e; ++k) {
-      const int w = cent[k];
-      const int j0 = (w >> 4) << 2;
-      for (int l = 0; l < 4; ++l) {
-        const int j = j0 + l;
-        const double dx = X[s] - X[j], dy = Y[s] - Y[j], dz = Z[s] - Z[j];
-        const double r2 = (w >> l & 1) ? dx * dx + dy * dy + dz * dz : far;
-        const double inv_r2 = 1.0 / r2;
-        const double r = std::sqrt(r2);
-        const double inv_r = r * inv_r2;
-        double Ec, dEc_r;
-        if (DDD) {
-          Ec = qi * Q[j] * inv_r2;
-          dEc_r = -2.0 * Ec * inv_r2;
-        } else {
-          Ec = qi * Q[j] * inv_r;
-          dEc_r = -Ec * inv_r2;
-        }
-        const double sg = SG[s] + SG[j], e4 = E2[s] * E2[j];
-        const double sr2 = sg * sg * inv_r2;
-        const double s6 = sr2 * sr2 * sr2, s12 = s6 * s6;
-        const double El = e4 * (s12 - s6);
-        const double dE_r = dEc_r + e4 * (-12.0 * s12 + 6.0 * s6) * inv_r2;
-        double xs = (r - r_on) * inv_w;
-        xs = xs < 0.0 ? 0.0 : xs;
-        xs = xs > 1.0 ? 1.0 : xs;
-        const double x2 = xs * xs, x3 = x2 * xs;
-        const double S = 1 - 10 * x3 + 15 * x3 * xs - 6 * x3 * x2;
-        const double dS = (-30 * x2 + 60 * x3 - 30 * x3 * xs) * inv_w;
-        const double dE = S * dE_r + dS * (Ec + El) * inv_r;
-        fix -= dE * dx;
-        fiy -= dE * dy;
-        fiz -= dE * dz;
-        FX[j] += dE * dx;
-        FY[j] += dE * dy;
-        FZ[j] += dE * dz;
-        ec += S * Ec;
-        el += S * El;
-      }
-    }
-    FX[s] += fix;
-    FY[s] += fiy;
-    FZ[s] += fiz;
-  }
-  ec_out += ec;
-  el_out += el;
-#endif
-}
-
-#ifdef __AVX__
-#pragma GCC diagnostic pop
-#endif
 
 void Evaluator::nonbonded(const int* crow, const int* cent, const std::vector<Vec3>& x,
                           std::vector<Vec3>& F, double& ec, double& el) {
@@ -683,8 +390,30 @@ void Evaluator::nonbonded(const int* crow, const int* cent, const std::vector<Ve
   std::fill(cfx_.begin(), cfx_.end(), 0.0);
   std::fill(cfy_.begin(), cfy_.end(), 0.0);
   std::fill(cfz_.begin(), cfz_.end(), 0.0);
-  if (o_.distance_dielectric) cluster_rows<true>(crow, cent, ec, el);
-  else cluster_rows<false>(crow, cent, ec, el);
+  kernel::ClusterRows a;
+  a.x = cx_.data();
+  a.y = cy_.data();
+  a.z = cz_.data();
+  a.q = cq_.data();
+  a.sigma = cs_.data();
+  a.e2 = ce_.data();
+  a.fx = cfx_.data();
+  a.fy = cfy_.data();
+  a.fz = cfz_.data();
+  a.crow = crow;
+  a.cent = cent;
+  a.nslots = nslots_;
+  a.r_on = o_.r_on;
+  a.r_off = o_.r_off;
+  a.ddd = o_.distance_dielectric;
+  a.kq = a.ddd ? kCoulomb / 40.0 : kCoulomb;
+  switch (isa::active()) {   // one relaxed atomic load per call
+#if HAPTREE_ISA_X86
+    case isa::Level::avx512: kernel::cluster_rows_avx512(a, ec, el); break;
+    case isa::Level::avx2: kernel::cluster_rows_avx2(a, ec, el); break;
+#endif
+    default: kernel::cluster_rows_generic(a, ec, el); break;
+  }
   last_lanes_ += 4 * static_cast<size_t>(crow[nslots_]);
   for (int s = 0; s < nslots_; ++s) {
     const int a = slot_atom_[s];
@@ -769,18 +498,10 @@ void Evaluator::split_list(const std::vector<Vec3>& x) {
       if (ma) {
         pa += __builtin_popcount(ma);
         int near = 0;   // lanes within r_off + kPrune now
-#ifdef __AVX__
-        const __m256d vx = _mm256_sub_pd(_mm256_set1_pd(X[s]), _mm256_load_pd(X + j));
-        const __m256d vy = _mm256_sub_pd(_mm256_set1_pd(Y[s]), _mm256_load_pd(Y + j));
-        const __m256d vz = _mm256_sub_pd(_mm256_set1_pd(Z[s]), _mm256_load_pd(Z + j));
-        const __m256d r2 = fmadd(vz, vz, fmadd(vy, vy, _mm256_mul_pd(vx, vx)));
-        near = _mm256_movemask_pd(_mm256_cmp_pd(r2, _mm256_set1_pd(rp2), _CMP_LT_OQ));
-#else
         for (int l = 0; l < 4; ++l) {
           const double dx = X[s] - X[j + l], dy = Y[s] - Y[j + l], dz = Z[s] - Z[j + l];
           near |= (dx * dx + dy * dy + dz * dz < rp2) << l;
         }
-#endif
         if (ma & near) caent_[na++] = c << 4 | (ma & near);
       }
       if (mi) { cient_[ni++] = c << 4 | mi; pi += __builtin_popcount(mi); }

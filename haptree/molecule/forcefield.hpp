@@ -5,7 +5,9 @@
 // Units: nm, kJ/mol, e; forces kJ/mol/nm (docs/molecules.md).
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
+#include <new>
 #include <vector>
 
 #include <Eigen/Core>
@@ -113,8 +115,6 @@ class Evaluator {
   // Switched pairs of the entries crow/cent at positions x; F overwritten with their forces.
   void nonbonded(const int* crow, const int* cent, const std::vector<Vec3>& x, std::vector<Vec3>& F,
                  double& ec, double& el);
-  template <bool DDD>
-  void cluster_rows(const int* crow, const int* cent, double& ec, double& el);
   NonbondedOptions o_;
   int n_;
   std::vector<int> body_;
@@ -145,7 +145,20 @@ class Evaluator {
   // 1×4 cluster kernel: slot s = 4c + l (cluster c, lane l) holds atom slot_atom_[s] (−1: padding);
   // per slot, positions / parameters / forces as structure of arrays. The list as entries
   // (c << 4 | lane mask) per i slot (CSR): atom i against the mask's atoms of cluster c.
-  using DVec = std::vector<double, Eigen::aligned_allocator<double>>;
+  // 64-byte aligned whatever Eigen's alignment at the library's -march (the kernels load whole
+  // 4-slot clusters with aligned 256-bit loads).
+  template <class T>
+  struct Aligned64 {
+    using value_type = T;
+    Aligned64() = default;
+    template <class U>
+    Aligned64(const Aligned64<U>&) {}
+    T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
+    void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+    bool operator==(const Aligned64&) const { return true; }
+    bool operator!=(const Aligned64&) const { return false; }
+  };
+  using DVec = std::vector<double, Aligned64<double>>;
   int nslots_ = 0;
   std::vector<int> slot_atom_, atom_slot_, slot_gkey_;
   DVec cx_, cy_, cz_, cq_, cs_, ce_, cfx_, cfy_, cfz_;
