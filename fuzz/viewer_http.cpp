@@ -13,7 +13,8 @@
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string raw(reinterpret_cast<const char*>(data), size);
   const haptree::WebResource direct = haptree::route_resource(raw);   // any bytes as a resource
-  FUZZ_CHECK(direct >= haptree::WebResource::kNotFound && direct <= haptree::WebResource::kSceneJson);
+  FUZZ_CHECK(haptree::query_param(raw, "token").size() <= raw.size());
+  FUZZ_CHECK(direct >= haptree::WebResource::kNotFound && direct <= haptree::WebResource::kSceneMeshes);
   websocketpp::http::parser::request req;
   try {
     size_t at = 0;
@@ -27,11 +28,14 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     return 0;
   }
   if (!req.ready()) return 0;
+  (void)haptree::query_param(req.get_uri(), "token");   // access control's parsing: never throws, any bytes
+  (void)haptree::cookie_value(req.get_header("Cookie"), "haptree_viewer_8080");
+  (void)haptree::same_origin(req.get_header("Origin"), req.get_header("Host"), size % 2 == 0);
   const haptree::WebResource r = haptree::route_resource(req.get_uri());
-  FUZZ_CHECK(r >= haptree::WebResource::kNotFound && r <= haptree::WebResource::kSceneJson);
+  FUZZ_CHECK(r >= haptree::WebResource::kNotFound && r <= haptree::WebResource::kSceneMeshes);
   if (r == haptree::WebResource::kNotFound) return 0;
   const std::string path = req.get_uri().substr(0, req.get_uri().find('?'));
   FUZZ_CHECK(path == "/" || path == "/index.html" || path == "/viewer.js" || path == "/vendor/ngl.js" ||
-             path == "/scene.pdb" || path == "/scene.json");
+             path == "/scene.pdb" || path == "/scene.json" || path == "/scene.meshes");
   return 0;
 }

@@ -11,7 +11,8 @@ BUILD_RUN=(
   gemmi-dev tao-pegtl-dev                       # PDB / mmCIF reading (haptree/molecule)
   liburdfdom-dev                                # URDF models
   libwebsocketpp-dev libasio-dev                # viewer (HTTP + WebSocket) and the inverse3 device (standalone asio)
-  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*)
+  libsodium-dev                                 # authenticated sessions (haptree/bus/auth.*), viewer tokens
+  libssl-dev                                    # viewer over https/wss (websocketpp's asio TLS, OpenSSL)
 )
 TESTS=(
   git
@@ -28,6 +29,7 @@ TESTS=(
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
   help2man dpkg-dev                             # man pages and .debs (cpack; scripts/test_install.sh)
   qemu-user                                     # default binaries run as an older CPU (tests/isa)
+  openssl                                       # the viewer's TLS test (openssl req, s_client)
   doxygen                                       # API reference (CMake target docs; CTest label docs)
 )
 PKGS=("${BUILD_RUN[@]}")

@@ -42,6 +42,9 @@ struct ViewerLaunch {
   int port = 8080;              // 0 = no viewer
   std::string bind = "127.0.0.1";
   int users = 2;                // tabs that can pull at once (couplers are started for them)
+  std::string token_file, watch_token_file, tls_cert, tls_key;
+  bool no_token = false;
+  std::vector<std::string> mesh_paths;
 };
 std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const haptree::SimServerOptions& so,
                                               const ViewerLaunch& vl, int users, FILE* out) {
@@ -53,9 +56,21 @@ std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const hapt
   vo.n = so.n;
   vo.urdf = so.urdf;
   vo.users = users;
+  vo.token_file = vl.token_file;
+  vo.watch_token_file = vl.watch_token_file;
+  vo.no_token = vl.no_token;
+  vo.tls_cert = vl.tls_cert;
+  vo.tls_key = vl.tls_key;
+  vo.mesh_paths = vl.mesh_paths;
   auto v = std::make_unique<haptree::Viewer>(bus, vo);
+<<<<<<< HEAD
   std::fprintf(out, "viewer: open %s\n", v->url().c_str());
   std::fflush(out);
+=======
+  std::printf("viewer: open %s\n", v->url().c_str());
+  if (!v->watch_url().empty()) std::printf("viewer: watch only %s\n", v->watch_url().c_str());
+  std::fflush(stdout);
+>>>>>>> main
   return v;
 }
 }  // namespace
@@ -82,8 +97,14 @@ int main(int argc, char** argv) {
   app.add_option("--scene", so.scene, "chain|binary_tree|random_tree|star|protein_like, molecule name or PDB")->capture_default_str();
   app.add_option("--n", so.n, "bodies of a procedural scene (count)")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
+<<<<<<< HEAD
   app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget, active degrees of freedom (count)")->check(CLI::Range(1, 1 << 24))->capture_default_str();
   app.add_option("--dt", so.dt, "time step, scene time units: s for procedural and URDF scenes, ps for molecules (default: 0.001 s; 0.0005 ps for molecules)")->check(haptree::bus::positive(1.0))->capture_default_str();
+=======
+  app.add_option("--mesh-path", vl.mesh_paths, "viewer: folder(s) where the URDF's package:// and relative mesh files are found");
+  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->check(CLI::Range(1, 1 << 24))->capture_default_str();
+  app.add_option("--dt", so.dt, "sim time step (scene units)")->check(haptree::bus::positive(1.0))->capture_default_str();
+>>>>>>> main
   std::vector<double> gravity;
   app.add_option("--gravity", gravity,
                  "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "
@@ -97,6 +118,16 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0, 65535))->capture_default_str();
   app.add_option("--viewer-bind", vl.bind, "address the viewer listens on, IPv4 (127.0.0.1: this machine only)")
       ->capture_default_str();
+  app.add_option("--viewer-token-file", vl.token_file,
+                 "file whose first line is the viewer's token that may pull (default: a random token, printed in the URL)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--viewer-watch-token-file", vl.watch_token_file, "file whose first line is a watch-only viewer token")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--viewer-no-token", vl.no_token,
+               "viewer without a token (only with a loopback --viewer-bind: anyone on this machine can pull)");
+  app.add_option("--viewer-tls-cert", vl.tls_cert, "PEM certificate: the viewer over https:// and wss:// (with --viewer-tls-key)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--viewer-tls-key", vl.tls_key, "PEM private key of --viewer-tls-cert")->check(CLI::ExistingFile);
   app.add_option("--viewer-users", vl.users,
                  "users a page can be, count (couplers are started for max(--users, this); the ones past --users have "
                  "no script)")->check(CLI::Range(1, 8))->capture_default_str();
@@ -221,6 +252,12 @@ int main(int argc, char** argv) {
     se.mirror_rate_hz = mirror_rate_hz;
     se.viewer_port = vl.port;
     se.viewer_bind = vl.bind;
+    se.viewer_token_file = vl.token_file;
+    se.viewer_watch_token_file = vl.watch_token_file;
+    se.viewer_tls_cert = vl.tls_cert;
+    se.viewer_tls_key = vl.tls_key;
+    se.viewer_no_token = vl.no_token;
+    se.viewer_mesh_paths = vl.mesh_paths;
     se.scripted_users = vl.port > 0 ? scripted_users : -1;
     se.device_kind = device_kind;
     se.session_key_file = session_key_file;

@@ -31,6 +31,7 @@
 #include "haptree/lcmt_process_stats.hpp"
 #include "tools/haptree_status.hpp"
 #include "tools/tcpq_hub.hpp"
+#include "viewer/viewer.hpp"
 
 namespace haptree::tools {
 
@@ -394,9 +395,35 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       vw.insert(vw.end(), {"--viewer-port", std::to_string(se.viewer_port), "--viewer-bind", se.viewer_bind, "--scene",
                            se.sim.scene, "--n", std::to_string(se.sim.n), "--viewer-users", std::to_string(se.users)});
       if (!se.sim.urdf.empty()) vw.insert(vw.end(), {"--urdf", se.sim.urdf});
+      for (const auto& d : se.viewer_mesh_paths) vw.insert(vw.end(), {"--mesh-path", d});
+      // The token goes to the viewer in a file (a command line is visible to every user in ps).
+      std::string token, token_file = se.viewer_token_file;
+      if (se.viewer_no_token) {
+        vw.push_back("--no-token");
+      } else {
+        if (token_file.empty()) {
+          token = random_viewer_token();
+          token_file = log_dir + "/viewer.token";
+          const int fd = ::open(token_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+          if (fd < 0 || ::write(fd, (token + "\n").data(), token.size() + 1) != static_cast<ssize_t>(token.size() + 1))
+            throw std::runtime_error("cannot write " + token_file);
+          ::close(fd);
+        } else {
+          token = read_viewer_token_file(token_file);
+        }
+        vw.insert(vw.end(), {"--token-file", token_file});
+      }
+      if (!se.viewer_watch_token_file.empty()) vw.insert(vw.end(), {"--watch-token-file", se.viewer_watch_token_file});
+      if (!se.viewer_tls_cert.empty()) vw.insert(vw.end(), {"--tls-cert", se.viewer_tls_cert, "--tls-key", se.viewer_tls_key});
       children.push_back({"viewer", log_dir + "/viewer.log"});
       children.back().pid = spawn(vw, children.back().log);
+<<<<<<< HEAD
       std::fprintf(se.json ? stderr : stdout, "viewer: open http://%s:%d/\n", se.viewer_bind.c_str(), se.viewer_port);
+=======
+      std::printf("viewer: open %s://%s:%d/%s\n", se.viewer_tls_cert.empty() ? "http" : "https", se.viewer_bind.c_str(),
+                  se.viewer_port, token.empty() ? "" : ("?token=" + token).c_str());
+      std::fflush(stdout);
+>>>>>>> main
     }
     spdlog::info("haptree_run --processes: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s; "
                  "bus {} ({}), logs in {}",

@@ -2,6 +2,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include <cctype>
 #include <cstdint>
 
 namespace haptree {
@@ -47,7 +48,67 @@ WebResource route_resource(const std::string& resource) noexcept {
   if (res == "/vendor/ngl.js") return WebResource::kNglJs;
   if (res == "/scene.pdb") return WebResource::kScenePdb;
   if (res == "/scene.json") return WebResource::kSceneJson;
+  if (res == "/scene.meshes") return WebResource::kSceneMeshes;
   return WebResource::kNotFound;
+}
+
+std::string query_param(const std::string& resource, const std::string& key) noexcept {
+  try {
+    const size_t q = resource.find('?');
+    if (q == std::string::npos || key.empty()) return "";
+    const std::string query = resource.substr(q + 1, resource.find('#', q) - q - 1);
+    for (size_t at = 0; at <= query.size();) {
+      size_t end = query.find('&', at);
+      if (end == std::string::npos) end = query.size();
+      const std::string kv = query.substr(at, end - at);
+      at = end + 1;
+      if (kv.size() <= key.size() || kv.compare(0, key.size(), key) != 0 || kv[key.size()] != '=') continue;
+      std::string v;
+      const std::string raw = kv.substr(key.size() + 1);
+      for (size_t i = 0; i < raw.size(); ++i) {
+        if (raw[i] == '%') {
+          if (i + 2 >= raw.size() || !std::isxdigit(static_cast<unsigned char>(raw[i + 1])) ||
+              !std::isxdigit(static_cast<unsigned char>(raw[i + 2])))
+            return "";
+          v.push_back(static_cast<char>(std::stoi(raw.substr(i + 1, 2), nullptr, 16)));
+          i += 2;
+        } else {
+          v.push_back(raw[i] == '+' ? ' ' : raw[i]);
+        }
+      }
+      return v;
+    }
+  } catch (...) {
+  }
+  return "";
+}
+
+std::string cookie_value(const std::string& header, const std::string& name) noexcept {
+  try {
+    for (size_t at = 0; at < header.size();) {
+      size_t end = header.find(';', at);
+      if (end == std::string::npos) end = header.size();
+      size_t b = at;
+      while (b < end && header[b] == ' ') ++b;
+      at = end + 1;
+      const size_t eq = header.find('=', b);
+      if (eq == std::string::npos || eq >= end) continue;
+      if (header.compare(b, eq - b, name) == 0 && eq - b == name.size()) return header.substr(eq + 1, end - eq - 1);
+    }
+  } catch (...) {
+  }
+  return "";
+}
+
+bool same_origin(const std::string& origin, const std::string& host, bool tls) noexcept {
+  if (origin.empty()) return true;
+  const std::string scheme = tls ? "https://" : "http://";
+  if (host.empty() || origin.size() != scheme.size() + host.size() || origin.compare(0, scheme.size(), scheme) != 0)
+    return false;
+  for (size_t i = 0; i < host.size(); ++i)
+    if (std::tolower(static_cast<unsigned char>(origin[scheme.size() + i])) != std::tolower(static_cast<unsigned char>(host[i])))
+      return false;
+  return true;
 }
 
 }  // namespace haptree

@@ -25,7 +25,17 @@ struct ClientCommand {
 ClientCommand parse_client_message(const char* data, size_t size) noexcept;
 
 // The files the viewer serves; kNotFound for anything else. The query string is ignored.
-enum class WebResource { kNotFound, kIndex, kViewerJs, kNglJs, kScenePdb, kSceneJson };
+enum class WebResource { kNotFound, kIndex, kViewerJs, kNglJs, kScenePdb, kSceneJson, kSceneMeshes };
 WebResource route_resource(const std::string& resource) noexcept;
+
+// Access control's parsing (any bytes; never throws). The value of `key` in a resource's query string
+// (`/ws?token=abc`: "abc", percent-escapes decoded; "" if absent or malformed).
+std::string query_param(const std::string& resource, const std::string& key) noexcept;
+// The value of cookie `name` in a Cookie header (`a=1; name=v`: "v"; "" if absent).
+std::string cookie_value(const std::string& header, const std::string& name) noexcept;
+// True when a WebSocket upgrade's Origin header names the page the viewer served: scheme http (https
+// with TLS) and host[:port] equal (case-insensitive) to the request's Host header. An absent Origin
+// (a client that is not a browser) is allowed; "null" or any other origin is not.
+bool same_origin(const std::string& origin, const std::string& host, bool tls) noexcept;
 
 }  // namespace haptree

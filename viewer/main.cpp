@@ -26,10 +26,20 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--n", o.n, "bodies of a procedural scene (count)")->capture_default_str();
   app.add_option("--urdf", o.urdf, "URDF file (overrides --scene)");
+  app.add_option("--mesh-path", o.mesh_paths, "folder(s) where the URDF's package:// and relative mesh files are found (paths)");
   app.add_option("--viewer-users", o.users, "users a page can be, count: user ids 0..N-1 (each needs a coupler and a browser device)")
       ->check(CLI::Range(1, 8))->capture_default_str();
   app.add_option("--max-fps", o.max_fps, "frames sent to each tab, per second")->check(CLI::Range(1.0, 240.0))
       ->capture_default_str();
+  app.add_option("--token-file", o.token_file,
+                 "file whose first line is the token that may pull (default: a random token, printed in the URL)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--watch-token-file", o.watch_token_file, "file whose first line is a watch-only token (may not pull)")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--no-token", o.no_token, "serve without a token (only with a loopback --bind: anyone on this machine can pull)");
+  app.add_option("--tls-cert", o.tls_cert, "PEM certificate (chain): serve https:// and wss:// (with --tls-key)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-key", o.tls_key, "PEM private key of --tls-cert")->check(CLI::ExistingFile);
   if (const int rc = cli.parse(argc, argv); rc >= 0) return rc;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();
@@ -38,11 +48,15 @@ int main(int argc, char** argv) {
     haptree::Viewer viewer(bus, o);
     haptree::bus::HandlerThread handler(bus);
     std::printf("viewer: open %s\n", viewer.url().c_str());
+    if (!viewer.watch_url().empty()) std::printf("viewer: watch only %s\n", viewer.watch_url().c_str());
     std::fflush(stdout);
     const int rc = viewer.run(g_stop);
     handler.stop();
-    spdlog::info("viewer: {} frames sent, {} dropped for slow tabs, {} pointer messages", viewer.frames_sent(),
-                 viewer.frames_dropped(), viewer.pointer_messages());
+    const haptree::ViewerRefusals r = viewer.refusals();
+    spdlog::info("viewer: {} frames sent ({} bytes), {} dropped for slow tabs, {} pointer messages; refused: {} "
+                 "without token, {} wrong token, {} foreign origin, {} watch token pulling", viewer.frames_sent(),
+                 viewer.frame_bytes(), viewer.frames_dropped(), viewer.pointer_messages(), r.no_token, r.wrong_token,
+                 r.foreign_origin, r.watch_pull);
     return rc;
   } catch (const std::exception& e) {
     spdlog::critical("{}", e.what());

@@ -71,9 +71,9 @@ class Page:
 
 
 class Browser:
-    def __init__(self):
+    def __init__(self, extra_flags=()):
         self.profile = tempfile.mkdtemp(prefix="haptree_chromium_")
-        args = [find_chromium(), *CHROMIUM_FLAGS, f"--user-data-dir={self.profile}",
+        args = [find_chromium(), *CHROMIUM_FLAGS, *extra_flags, f"--user-data-dir={self.profile}",
                 "--remote-debugging-port=0", "about:blank"]
         self.log_path = os.path.join(self.profile, "chromium.log")
         self.log = open(self.log_path, "w+")

@@ -48,6 +48,7 @@ class Launcher:
         self.lines = []
         self.force = {}          # user -> list of (time, |f|)
         self.url_seen = threading.Event()
+        self.url = None
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self):
@@ -56,6 +57,7 @@ class Launcher:
             self.log.flush()
             self.lines.append(line)
             if line.startswith("viewer: open http://"):
+                self.url = line.split()[2]   # http://127.0.0.1:PORT/?token=...
                 self.url_seen.set()
             if line.startswith("t "):
                 for m in self.LINE.finditer(line):
@@ -87,7 +89,8 @@ def wait_for(what, fn, timeout):
 def ca_atoms(url):
     """Indices (file order = NGL's atom index) of the CA atoms in the viewer's /scene.pdb: always drawn."""
     import urllib.request
-    with urllib.request.urlopen(url + "scene.pdb", timeout=30) as r:
+    base, query = url.split("?", 1)
+    with urllib.request.urlopen(base + "scene.pdb?" + query, timeout=30) as r:
         lines = [l for l in r.read().decode().splitlines() if l.startswith(("ATOM", "HETATM"))]
     return [i for i, l in enumerate(lines) if l[12:16].strip() == "CA"]
 
@@ -144,7 +147,8 @@ def main():
     try:
         if not launcher.url_seen.wait(120):
             raise AssertionError("the launcher printed no viewer URL:\n" + "".join(launcher.lines[-20:]))
-        url = f"http://127.0.0.1:{port}/"
+        url = launcher.url
+        check(url.startswith(f"http://127.0.0.1:{port}/?token="), f"the launcher prints the URL with its token ({url})")
         browser = cdp.Browser()
         a = browser.new_page(url)
         wait_for("tab A ready", lambda: ds(a, "ready") == "1", 120)
@@ -158,6 +162,16 @@ def main():
         f1, t1 = int(ds(b, "frames") or 0), time.time()
         check(f1 > f0, f"frames advance in tab B ({f0} -> {f1})")
         print(f"tab B rendered {(f1 - f0) / (t1 - t0):.1f} frames/s (headless chromium, SwiftShader)", flush=True)
+        # every user's device cursor is drawn (user 0: the scripted device, grabbing; user 1: the idle
+        # browser device), and the HUD says "no grab" for the idle one
+        wait_for("the device cursors in tab B", lambda: int(ds(b, "cursors") or 0) >= 1, 30)
+        check(int(ds(b, "cursors") or 0) >= 1, f"device cursors drawn in tab B: {ds(b, 'cursors')} (JS-side count)")
+        hud = b.eval("document.getElementById('hudtab').innerText")
+        check("no grab" in hud and "-1.0 ms" not in hud, f"the HUD says 'no grab' for the idle user ({hud[-120:]!r})")
+        b.call("Page.bringToFront")
+        shot = os.path.join(out_dir, f"viewer_cursor_{tag}.png")
+        b.screenshot(shot)
+        check(os.path.getsize(shot) > 10000, f"cursor screenshot {shot} ({os.path.getsize(shot)} bytes)")
         before = launcher.forces_since(1, 0)
         check(all(f == 0.0 for f in before), f"user 1 idle before the drag (|f| {before[-3:]})")
 

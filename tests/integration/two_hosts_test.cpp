@@ -111,8 +111,8 @@ std::string slurp(const std::string& path) {
 
 double now_s() { return std::chrono::duration<double>(Clock::now().time_since_epoch()).count(); }
 
-// HTTP GET / on addr:port; the status line, or why not.
-std::string http_status(const char* addr, int port) {
+// HTTP GET `path` on addr:port; the status line, or why not.
+std::string http_status(const char* addr, int port, const std::string& path) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in sa{};
   sa.sin_family = AF_INET;
@@ -124,7 +124,7 @@ std::string http_status(const char* addr, int port) {
     ::close(fd);
     return "connect failed";
   }
-  const std::string req = "GET / HTTP/1.0\r\nHost: " + std::string(addr) + "\r\n\r\n";
+  const std::string req = "GET " + path + " HTTP/1.0\r\nHost: " + std::string(addr) + "\r\n\r\n";
   (void)!::write(fd, req.data(), req.size());
   char buf[256] = {0};
   const ssize_t n = ::read(fd, buf, sizeof buf - 1);
@@ -139,8 +139,10 @@ std::string http_status(const char* addr, int port) {
 //   F <user> <steady time s> <|f| N>      every FEEDBACK of users 0 and 1
 //   S <count>                             scene-state messages
 //   R <max rejected of sim_server's stats>
-//   H <viewer's HTTP status line>
-pid_t start_probe(const std::string& ns, const std::string& key_file, double seconds, const std::string& out) {
+//   H <viewer's HTTP status line with the token>
+//   N <viewer's HTTP status line without it>
+pid_t start_probe(const std::string& ns, const std::string& key_file, const std::string& token, double seconds,
+                  const std::string& out) {
   std::fflush(nullptr);
   const pid_t pid = ::fork();
   if (pid != 0) return pid;
@@ -176,21 +178,24 @@ pid_t start_probe(const std::string& ns, const std::string& key_file, double sec
     uf.user_id = 0;
     uf.grab_body = 1;
     uf.force[5] = 1000;   // a big pull on user 0's body, if it were taken
-    std::string http;
+    std::string http, http_no_token;
     const auto t0 = Clock::now();
     while (Clock::now() - t0 < std::chrono::duration<double>(seconds)) {
       uf.utime = std::chrono::duration_cast<std::chrono::microseconds>(
                      std::chrono::system_clock::now().time_since_epoch()).count();
       ++uf.seq;
       stranger.publish(bus::channel::user_force(0), uf);
-      if (http.empty() && Clock::now() - t0 > std::chrono::milliseconds(1500)) http = http_status(kServerAddress, kViewerPort);
+      if (http.empty() && Clock::now() - t0 > std::chrono::milliseconds(1500)) {
+        http = http_status(kServerAddress, kViewerPort, "/?token=" + token);
+        http_no_token = http_status(kServerAddress, kViewerPort, "/");
+      }
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
     handler.stop();
     std::lock_guard<std::mutex> l(m);
     for (const auto& s : lines) std::fprintf(f, "%s\n", s.c_str());
-    std::fprintf(f, "S %lld\nR %lld\nH %s\n", static_cast<long long>(scene.load()),
-                 static_cast<long long>(rejected.load()), http.c_str());
+    std::fprintf(f, "S %lld\nR %lld\nH %s\nN %s\n", static_cast<long long>(scene.load()),
+                 static_cast<long long>(rejected.load()), http.c_str(), http_no_token.c_str());
     std::fclose(f);
     ::_exit(0);
   } catch (const std::exception& e) {
@@ -226,15 +231,19 @@ TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
   // the test's own key file overrides it on the command line).
   const std::string key = dir + "session.key";
   ASSERT_EQ(sh("head -c 32 /dev/urandom > " + key + " && chmod 600 " + key), 0);
+  // The viewer's pull token (the file names /etc/haptree/viewer.token; overridden like the key).
+  const std::string token = "two-hosts-test-token-0123456789";
+  const std::string token_file = dir + "viewer.token";
+  std::ofstream(token_file) << token << "\n";
   auto with = [&](std::vector<std::string> a) {
     a.insert(a.begin() + 1, {"--config", kSession, "--session-key-file", key});
     return a;
   };
   const double t_begin = now_s();
-  const pid_t probe = start_probe(ns.b, key, 11.0, dir + "probe.txt");
+  const pid_t probe = start_probe(ns.b, key, token, 11.0, dir + "probe.txt");
   ASSERT_GT(probe, 0);
   pid_t sim = spawn_in(ns.a, with({HAPTREE_SIM_SERVER}), dir + "sim_server.log");
-  const pid_t viewer = spawn_in(ns.a, with({HAPTREE_VIEWER}), dir + "viewer.log");
+  const pid_t viewer = spawn_in(ns.a, with({HAPTREE_VIEWER, "--token-file", token_file}), dir + "viewer.log");
   std::vector<pid_t> ws;   // workstation: bridges, then couplers
   for (int u = 0; u < 2; ++u)
     ws.push_back(spawn_in(ns.b, with({HAPTREE_DEVICE_BRIDGE, "--device", std::to_string(u)}),
@@ -263,7 +272,7 @@ TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
 
   std::vector<Feedback> fb;
   long long scene = -1, rejected = -1;
-  std::string http;
+  std::string http, http_no_token;
   {
     std::ifstream in(dir + "probe.txt");
     std::string line;
@@ -273,6 +282,7 @@ TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
       else if (line.rfind("S ", 0) == 0) scene = std::atoll(line.c_str() + 2);
       else if (line.rfind("R ", 0) == 0) rejected = std::atoll(line.c_str() + 2);
       else if (line.rfind("H ", 0) == 0) http = line.substr(2);
+      else if (line.rfind("N ", 0) == 0) http_no_token = line.substr(2);
     }
   }
   EXPECT_EQ(bad_exit, 0) << "exit codes (bridges, couplers, viewer, restarted server):" << exits;
@@ -299,11 +309,13 @@ TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
     if (std::regex_search(log, m, std::regex(R"((\d+) restarts)"))) restarts = std::stoll(m[1]);
     EXPECT_GE(restarts, 1) << log;
   }
-  std::printf("scene-state messages on the workstation: %lld; viewer from the workstation: %s; sim_server "
-              "refused %lld messages (the stranger's); session %.1f s\n", scene, http.c_str(), rejected,
+  std::printf("scene-state messages on the workstation: %lld; viewer from the workstation: %s (without the "
+              "token: %s); sim_server refused %lld messages (the stranger's); session %.1f s\n", scene, http.c_str(),
+              http_no_token.c_str(), rejected,
               t_end - t_begin);
   EXPECT_GT(scene, 50);   // 30 Hz for ~8 s of live server
   EXPECT_NE(http.find(" 200"), std::string::npos) << http << "\n" << slurp(dir + "viewer.log");
+  EXPECT_NE(http_no_token.find(" 403"), std::string::npos) << "without the token: " << http_no_token;
   EXPECT_GT(rejected, 10) << "the stranger's unkeyed USER_FORCE must be refused and counted";
 }
 

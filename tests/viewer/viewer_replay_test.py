@@ -1,4 +1,4 @@
-"""The viewer on a replay (issue 12): a session recorded by lcm-logger, played back by lcm-logplayer into a
+"""The viewer on a replay: a session recorded by lcm-logger, played back by lcm-logplayer into a
 stand-alone viewer, checked on the viewer's own WebSocket frames (what the page draws).
 
   viewer_replay_test.py HAPTREE_RUN VIEWER LCMTYPES_DIR OUT_DIR
@@ -90,11 +90,11 @@ def watch_replay(viewer, log, out_dir):
         m, seen = None, []
         for line in v.stdout:   # its log lines come first (spdlog on stdout)
             seen.append(line)
-            m = re.match(r"viewer: open http://127\.0\.0\.1:(\d+)/", line)
+            m = re.match(r"viewer: open http://127\.0\.0\.1:(\d+)/\?token=(\S+)", line)
             if m:
                 break
         assert m, f"the viewer printed no URL: {seen[-5:]}"
-        ws = websocket.create_connection(f"ws://127.0.0.1:{m.group(1)}/ws", timeout=10)
+        ws = websocket.create_connection(f"ws://127.0.0.1:{m.group(1)}/ws?token={m.group(2)}", timeout=10)
         hello = json.loads(ws.recv())
         assert hello["t"] == "hello" and hello["user"] == 0, hello
         player = subprocess.Popen(["lcm-logplayer", f"--lcm-url={URL}", log],
@@ -106,11 +106,12 @@ def watch_replay(viewer, log, out_dir):
                 op, data = ws.recv_data()
             except websocket.WebSocketTimeoutException:
                 break
-            if op == websocket.ABNF.OPCODE_TEXT:
-                meta = json.loads(data)
-            elif op == websocket.ABNF.OPCODE_BINARY and meta is not None:
-                frames.append((meta, struct.unpack(f"<{len(data) // 4}f", data)))
-                meta = None
+            if op == websocket.ABNF.OPCODE_BINARY:   # "HTF1", uint32 JSON length, JSON, float32 positions
+                assert data[:4] == b"HTF1", data[:8]
+                n = struct.unpack("<I", data[4:8])[0]
+                meta = json.loads(data[8:8 + n])
+                pos = data[8 + n:]
+                frames.append((meta, struct.unpack(f"<{len(pos) // 4}f", pos) if pos else None))
             if t_over is None and player.poll() is not None:
                 t_over = time.time()           # the replay is over: 0.5 s of frames more
         ws.close()
@@ -173,14 +174,18 @@ def main():
     check(len(set(played)) >= len(states) // 3, f"the frames follow the replay ({len(set(played))} of {len(states)} versions)")
     check(played == sorted(played), "frame versions never go back")
 
+    # positions travel only with a new scene state: a frame without them repeats its predecessor's version
+    bare = [(a[0]["version"], b[0]["version"]) for a, b in zip(frames, frames[1:]) if b[1] is None]
+    check(all(x == y for x, y in bare) and sum(1 for _, fl in frames if fl is not None) >= len(set(played)),
+          f"positions sent only when the scene changed ({len(bare)} frames without, all at an unchanged version)")
     nb = hello["bodies"] + 1
     s_disp = hello["disp_per_scene_unit"]
     worst, moved, first = 0.0, 0.0, None
     for meta, fl in frames:
         s = states.get(meta["version"])
-        if s is None:
+        if s is None or fl is None:   # a frame without positions: the scene did not move since the last
             continue
-        pts = fl[4:]
+        pts = fl
         assert len(pts) == 3 * nb
         c = [s.body_position[0][a] - pts[a] / s_disp for a in range(3)]   # the ground body fixes the centre
         mag = max(abs(x) for x in pts)

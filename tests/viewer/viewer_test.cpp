@@ -6,16 +6,22 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
+#include <fstream>
 #include <cmath>
+#include <cstring>
 #include <random>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "haptree/bus/bus.hpp"
 #include "haptree/bus/channels.hpp"
 #include "haptree/lcmt_scene_state.hpp"
 #include "sim_server/sim_server.hpp"
+#include "haptree/io/urdf.hpp"
+#include "viewer/robot_visuals.hpp"
 #include "viewer/viewer.hpp"
 
 namespace haptree {
@@ -53,6 +59,29 @@ TEST(ViewerParse, RefusesNonFiniteMalformedAndAbsurdInput) {
   }
 }
 
+TEST(ViewerParse, TokenCookieAndOrigin) {
+  EXPECT_EQ(query_param("/ws?token=abc", "token"), "abc");
+  EXPECT_EQ(query_param("/?x=1&token=a%2Db+c&y=2", "token"), "a-b c");
+  EXPECT_EQ(query_param("/?tokens=1&xtoken=2", "token"), "");
+  EXPECT_EQ(query_param("/?token=%zz", "token"), "");
+  EXPECT_EQ(query_param("/?token=%2", "token"), "");
+  EXPECT_EQ(query_param("/token=abc", "token"), "");
+  EXPECT_EQ(cookie_value("a=1; haptree_viewer_80=tok; b=2", "haptree_viewer_80"), "tok");
+  EXPECT_EQ(cookie_value("haptree_viewer_8=x; haptree_viewer_80=y", "haptree_viewer_80"), "y");
+  EXPECT_EQ(cookie_value("xhaptree_viewer_80=y", "haptree_viewer_80"), "");
+  EXPECT_EQ(cookie_value("", "a"), "");
+  EXPECT_TRUE(same_origin("", "127.0.0.1:80", false));   // not a browser
+  EXPECT_TRUE(same_origin("http://127.0.0.1:8080", "127.0.0.1:8080", false));
+  EXPECT_TRUE(same_origin("http://LabHost:8080", "labhost:8080", false));
+  EXPECT_TRUE(same_origin("https://h:1", "h:1", true));
+  EXPECT_FALSE(same_origin("http://h:1", "h:1", true));
+  EXPECT_FALSE(same_origin("https://h:1", "h:1", false));
+  EXPECT_FALSE(same_origin("http://127.0.0.1:8081", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("http://evil.example", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("null", "127.0.0.1:8080", false));
+  EXPECT_FALSE(same_origin("http://127.0.0.1:8080", "", false));
+}
+
 std::string http_get(int port, const std::string& path) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in a{};
@@ -78,15 +107,24 @@ TEST(Viewer, ServesThePageTheSceneAndNothingElse) {
   o.port = 0;   // any free port
   o.scene = "chain";
   o.n = 5;
+  o.token = "unit-test-token-0123456789";
   Viewer v(bus, o);
   ASSERT_GT(v.port(), 0);
-  EXPECT_EQ(v.url(), "http://127.0.0.1:" + std::to_string(v.port()) + "/");
+  EXPECT_EQ(v.url(), "http://127.0.0.1:" + std::to_string(v.port()) + "/?token=" + o.token);
   std::atomic<bool> stop{false};
   std::thread t([&] { v.run(stop); });
-  const std::string page = http_get(v.port(), "/");
+  const std::string tq = "?token=" + o.token;
+  const std::string page = http_get(v.port(), "/" + tq);
   EXPECT_NE(page.find("200 OK"), std::string::npos);
   EXPECT_NE(page.find("vendor/ngl.js"), std::string::npos);
-  const std::string pdb = http_get(v.port(), "/scene.pdb");
+  EXPECT_NE(page.find("Set-Cookie: haptree_viewer_" + std::to_string(v.port()) + "=" + o.token + ";"), std::string::npos);
+  // without the token, or with another one (also one that only differs in its last character): 403
+  for (const std::string& bad : std::vector<std::string>{"/", "/scene.pdb", "/?token=" + o.token.substr(0, o.token.size() - 1) + "X",
+                                 "/?token=" + o.token + "0", "/?token="})
+    EXPECT_NE(http_get(v.port(), bad).find("403"), std::string::npos) << bad;
+  EXPECT_EQ(v.refusals().no_token, 3);
+  EXPECT_EQ(v.refusals().wrong_token, 2);
+  const std::string pdb = http_get(v.port(), "/scene.pdb" + tq);
   // chain(5): the ground + 5 bodies as points, 5 joints as CONECT records
   size_t atoms = 0, conect = 0;
   for (size_t p = 0; (p = pdb.find("\nHETATM", p)) != std::string::npos; ++p) ++atoms;
@@ -94,7 +132,7 @@ TEST(Viewer, ServesThePageTheSceneAndNothingElse) {
   EXPECT_EQ(atoms, 6u);
   EXPECT_EQ(conect, 5u);
   for (const char* bad : {"/../../etc/passwd", "/vendor/../viewer.cpp", "/nothing", "/index.html/.."})
-    EXPECT_NE(http_get(v.port(), bad).find("404"), std::string::npos) << bad;
+    EXPECT_NE(http_get(v.port(), bad + tq).find("404"), std::string::npos) << bad;
   stop = true;
   t.join();
 }
@@ -153,6 +191,106 @@ TEST(SceneState, LargeSceneIsSplitIntoDatagramSizedChunksWithActiveFlags) {
   EXPECT_EQ(active, got[0].active_dofs);
   EXPECT_GT(active, 0);
   EXPECT_EQ(seen.size(), 2501u);
+}
+
+// The sample robots' mesh files (data/robots/make_robots.py writes them from known solids): each format
+// gives the solid's triangles and extent, in metres.
+void extent(const TriMesh& m, Vec3& lo, Vec3& hi) {
+  lo = Vec3::Constant(1e9), hi = Vec3::Constant(-1e9);
+  for (const Vec3& v : m.v) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+}
+
+TEST(RobotVisuals, MeshFilesOfEveryFormat) {
+  const std::string d = std::string(HAPTREE_ROBOTS_DIR) + "/meshes/arm/";
+  Vec3 lo, hi;
+  const TriMesh wrist = load_mesh_file(d + "wrist.stl");   // ASCII STL: a 0.06 x 0.05 x 0.05 box at x = 0.03
+  EXPECT_EQ(wrist.f.size(), 12u);
+  extent(wrist, lo, hi);
+  EXPECT_NEAR((lo - Vec3(0, -0.025, -0.025)).norm(), 0, 1e-6);
+  EXPECT_NEAR((hi - Vec3(0.06, 0.025, 0.025)).norm(), 0, 1e-6);
+  const TriMesh upper = load_mesh_file(d + "upper.stl");   // binary STL: a 24-segment cylinder + a box
+  EXPECT_EQ(upper.f.size(), 4u * 24u + 12u);
+  extent(upper, lo, hi);
+  EXPECT_NEAR(hi.z(), 0.3, 1e-6);
+  EXPECT_NEAR(lo.z(), -0.03, 1e-6);
+  const TriMesh grip = load_mesh_file(d + "gripper.obj");   // OBJ: three boxes
+  EXPECT_EQ(grip.f.size(), 36u);
+  extent(grip, lo, hi);
+  EXPECT_NEAR(hi.x(), 0.07, 1e-6);
+  EXPECT_NEAR(hi.y(), 0.04, 1e-6);
+  // DAE in millimetres under a node translated by 10 mm: a puck of radius 0.08 m from z = 0 to 0.05 m
+  const TriMesh base = load_mesh_file(d + "base.dae");
+  EXPECT_EQ(base.f.size(), 4u * 24u);
+  extent(base, lo, hi);
+  EXPECT_NEAR(lo.z(), 0.0, 1e-9);
+  EXPECT_NEAR(hi.z(), 0.05, 1e-9);
+  EXPECT_NEAR(hi.x(), 0.08, 1e-9);
+}
+
+TEST(RobotVisuals, MalformedMeshFilesAreOneLineErrors) {
+  const std::string dir = ::testing::TempDir();
+  const std::pair<const char*, const char*> bad[] = {
+      {"trunc.stl", "not solid at all, too short"}, {"bad.obj", "v 0 0 0\nv 1 0 0\nf 1 2 7\n"},
+      {"nan.obj", "v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"}, {"notcollada.dae", "<x/>"},
+      {"range.dae", "<COLLADA><library_geometries><geometry id='g'><mesh><source id='s'><float_array>0 0 0 1 0 0 0 1 0"
+                    "</float_array></source><vertices id='v'><input semantic='POSITION' source='#s'/></vertices>"
+                    "<triangles><input semantic='VERTEX' source='#v' offset='0'/><p>0 1 9</p></triangles></mesh>"
+                    "</geometry></library_geometries></COLLADA>"},
+      {"mesh.ply", "ply"}};
+  for (const auto& [name, text] : bad) {
+    const std::string p = dir + "/" + name;
+    std::ofstream(p) << text;
+    EXPECT_THROW(load_mesh_file(p), std::runtime_error) << name;
+  }
+  EXPECT_THROW(load_mesh_file(dir + "/missing.stl"), std::runtime_error);
+}
+
+TEST(RobotVisuals, SampleRobotsAndAMissingMesh) {
+  const std::string d = HAPTREE_ROBOTS_DIR;
+  auto arm = io::load_urdf(d + "/arm.urdf", {});
+  RobotVisuals v = load_robot_visuals(d + "/arm.urdf", *arm, {});
+  EXPECT_EQ(v.meshes, 5);
+  EXPECT_EQ(v.missing, 0);
+  EXPECT_TRUE(v.warnings.empty());
+  size_t tris = 0;
+  for (const auto& b : v.bodies) {
+    EXPECT_GE(b.body, 1);
+    EXPECT_EQ(b.position.size(), b.normal.size());
+    EXPECT_EQ(b.position.size(), b.color.size());
+    tris += b.position.size() / 9;
+  }
+  EXPECT_EQ(tris, 4u * 24u + (4u * 24u + 12u) + (4u * 20u + 12u) + 12u + 36u);
+  // the upper link's mesh is in its own frame: the cylinder's top at z = 0.3 m above the shoulder
+  const int upper = arm->body_index("upper");
+  for (const auto& b : v.bodies)
+    if (b.body == upper) {
+      float top = -1;
+      for (size_t i = 2; i < b.position.size(); i += 3) top = std::max(top, b.position[i]);
+      EXPECT_NEAR(top, 0.3f, 1e-6f);
+      for (size_t i = 0; i < b.color.size(); i += 3) EXPECT_FLOAT_EQ(b.color[i], 0.95f);   // its material
+    }
+  auto snake = io::load_urdf(d + "/snake.urdf", {});
+  v = load_robot_visuals(d + "/snake.urdf", *snake, {});
+  EXPECT_EQ(v.primitives, 10 + 10 + 1);   // a box and a joint sphere per module, the head
+  EXPECT_EQ(v.bodies.size(), 10u);
+  auto cable = io::load_urdf(d + "/cable.urdf", {});
+  v = load_robot_visuals(d + "/cable.urdf", *cable, {});
+  EXPECT_EQ(v.primitives, 24);
+  // a mesh that is not there: its body's sphere and one warning naming the file, also when used twice
+  std::string text;
+  {
+    std::ifstream in(d + "/arm.urdf");
+    text.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  const std::string to = "meshes/arm/nowhere.stl";
+  for (const char* from : {"meshes/arm/wrist.stl", "meshes/arm/fore.stl"}) text.replace(text.find(from), std::strlen(from), to);
+  const std::string copy = ::testing::TempDir() + "/arm_missing.urdf";
+  std::ofstream(copy) << text;
+  v = load_robot_visuals(copy, *arm, {d});   // the others through --mesh-path
+  EXPECT_EQ(v.meshes, 3);
+  EXPECT_EQ(v.missing, 2);
+  ASSERT_EQ(v.warnings.size(), 1u);
+  EXPECT_NE(v.warnings[0].find("nowhere.stl"), std::string::npos);
 }
 
 }  // namespace

@@ -1,9 +1,11 @@
-// haptree viewer page: NGL scene from /scene.pdb, live frames over the WebSocket (JSON overlays + Float32
-// positions), the mouse as this tab's haptic device. Test hooks: document.body.dataset.frames (frames
-// rendered), .forceN (last |f| shown for this tab's user, N), .ready, .user, .grab.
+// haptree viewer page: NGL scene from /scene.pdb, live frames over the WebSocket (one binary message each:
+// JSON overlays + Float32 positions), the mouse as this tab's haptic device. Test hooks:
+// document.body.dataset.frames (frames drawn), .forceN (last |f| shown for this tab's user, N), .ready,
+// .user, .grab, .cursors (device cursors drawn), .wsBytes / .wsFrames (frame bytes and messages received).
 /* global NGL */
 const USER_COLOURS = ['#d62728', '#1f77b4', '#2ca02c', '#9467bd', '#e377c2', '#17becf', '#bcbd22', '#8c564b'];
 const ACTIVE = 0xff8c00, RIGID = 0x8fa3b8;
+const REACH_MAX = 12.0;   // display units (Å): the largest reach sphere drawn
 const ARROW_PER_N = 8.0;   // display units (Å) per newton at the device (shown in the HUD)
 
 const body = document.body;
@@ -12,7 +14,7 @@ const stage = new NGL.Stage('stage', { backgroundColor: 'white', tooltip: false,
 window.addEventListener('resize', () => stage.handleResize());
 
 let hello = null, comp = null, ballRepr = null, cartoonRepr = null, overlay = null;
-let frame = null, pendingPositions = null, framesRendered = 0;
+let pending = null, framesRendered = 0, lastPos = null;
 let activeOfPoint = null, maskDirty = false, lastMaskUpdate = 0;
 let grab = null;
 let tPos = 0, tOv = 0, tFrame = 0;
@@ -29,18 +31,34 @@ const scheme = NGL.ColormakerRegistry.addScheme(function () {
   this.atomColor = (atom) => (activeOfPoint && activeOfPoint[atom.index] ? ACTIVE : RIGID);
 }, 'haptree-active');
 
-const ws = new WebSocket(`ws://${location.host}/ws`);
+// The token: in the URL once (the server then sets a cookie, so a reload without it works); taken off the
+// address bar so it is not shared by a screenshot or a copied link, and given to the WebSocket too.
+const token = new URLSearchParams(location.search).get('token');
+if (token) history.replaceState(null, '', location.pathname);
+const ws = new WebSocket(`${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
+  (token ? `?token=${encodeURIComponent(token)}` : ''));
 ws.binaryType = 'arraybuffer';
 ws.onclose = () => { setStatus('disconnected (session over?)'); };
+let wsBytes = 0, wsFrames = 0;
+const decoder = new TextDecoder();
 ws.onmessage = (ev) => {
-  if (typeof ev.data === 'string') {
+  if (typeof ev.data === 'string') {   // the hello
     let m;
     try { m = JSON.parse(ev.data); } catch (e) { return; }
     if (m.t === 'hello') onHello(m);
-    else if (m.t === 'frame') frame = m;
-  } else if (frame) {
-    pendingPositions = { pos: new Float32Array(ev.data, 16), frame };
+    return;
   }
+  // a frame: "HTF1", uint32 JSON length, JSON, Float32 x y z per point (absent: the scene did not move)
+  const buf = ev.data, dv = new DataView(buf);
+  if (buf.byteLength < 8 || dv.getUint32(0, false) !== 0x48544631) return;
+  const n = dv.getUint32(4, true);
+  if (8 + n > buf.byteLength) return;
+  let f;
+  try { f = JSON.parse(decoder.decode(new Uint8Array(buf, 8, n))); } catch (e) { return; }
+  wsBytes += buf.byteLength; wsFrames += 1;
+  const pos = buf.byteLength > 8 + n ? new Float32Array(buf, 8 + n) : null;
+  // at most one draw per animation frame: a newer frame replaces a pending one, its positions kept
+  pending = { pos: pos || (pending && pending.pos), frame: f, active: f.active !== undefined ? f.active : pending && pending.active };
 };
 
 function setStatus(s) { document.getElementById('status').textContent = s; }
@@ -48,7 +66,10 @@ function setStatus(s) { document.getElementById('status').textContent = s; }
 async function onHello(m) {
   hello = m;
   body.dataset.user = String(m.user);
-  setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}` : `spectator (all ${m.users} users taken) — ${m.scene}`);
+  body.dataset.role = m.role || '';
+  setStatus(m.user >= 0 ? `you are user ${m.user} — ${m.scene}`
+    : m.role === 'watch' ? `watching (this link may not pull) — ${m.scene}`
+      : `spectator (all ${m.users} users taken) — ${m.scene}`);
   comp = await stage.loadFile('/scene.pdb', { ext: 'pdb', defaultRepresentation: false });
   if (m.kind === 'molecule') {
     cartoonRepr = comp.addRepresentation('cartoon', { color: 'sstruc', opacity: 0.9 });
@@ -59,18 +80,81 @@ async function onHello(m) {
     s.eachBond((bond) => { a.index = bond.atomIndex1; b.index = bond.atomIndex2; d.push(a.distanceTo(b)); });
     d.sort((x, y) => x - y);
     const spacing = d.length ? d[Math.floor(d.length / 2)] : 1;
-    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, radiusType: 'size', radiusSize: 0.3 * spacing, aspectRatio: 2 });
+    // with the robot's own visuals the skeleton stays, thin, inside them
+    ballRepr = comp.addRepresentation('ball+stick', { color: scheme, radiusType: 'size',
+      radiusSize: (m.meshes ? 0.06 : 0.3) * spacing, aspectRatio: 2 });
+    if (m.meshes) {
+      await loadMeshes();
+      if (lastPos) moveMeshes(lastPos, lastPos.subarray(3 * m.points));   // a frame came while they loaded
+    }
   }
   activeOfPoint = new Uint8Array(m.points);
   makeOverlay(m.users);
+  if (m.meshes) {   // a robot (URDF: z up): seen from the side, a little from above, not down its z axis
+    // Its meshes reach past the box of the body origins NGL clips and fogs by: no fog, a farther clip.
+    stage.setParameters({ clipFar: 400, fogNear: 100, fogFar: 100 });
+    const vc = stage.viewerControls;
+    vc.rotate(new NGL.Quaternion().setFromAxisAngle(new NGL.Vector3(1, 0, 0), Math.PI / 2));
+    vc.rotate(new NGL.Quaternion().setFromAxisAngle(new NGL.Vector3(0, 1, 0), -0.6));
+    vc.rotate(new NGL.Quaternion().setFromAxisAngle(new NGL.Vector3(1, 0, 0), -0.35));
+  }
   comp.autoView();
   body.dataset.ready = '1';
 }
 
-// Overlays: per user the grabbed point, the device proxy point, the spring and the force arrow. The
-// buffers are made once and only their attributes change per frame (no new shaders, no new component);
-// hidden primitives get radius 0.
-let spheres = null, springs = null, arrows = null;
+// A robot's visuals (/scene.meshes, the frame's layout: JSON [{body, tris}], then per body float32
+// positions in the body frame, normals, colours; 9 floats per triangle each): one NGL mesh per body, named
+// "body K" (a click on it grabs body K), moved per frame by the body's pose (frame: the points, which are
+// the body origins, then x y z w per body).
+let meshBodies = [], meshesFramed = false;
+async function loadMeshes() {
+  const buf = await (await fetch('/scene.meshes', { credentials: 'same-origin' })).arrayBuffer();
+  const dv = new DataView(buf);
+  if (buf.byteLength < 8 || dv.getUint32(0, false) !== 0x48544631) throw new Error('scene.meshes: not a mesh list');
+  const n = dv.getUint32(4, true);
+  const list = JSON.parse(decoder.decode(new Uint8Array(buf, 8, n)));
+  let at = 8 + n;
+  const shape = new NGL.Shape('robot');
+  const take = (k) => { const a = new Float32Array(buf, at, k); at += 4 * k; return a; };
+  for (const e of list) {
+    const k = 9 * e.tris, local = take(k), localN = take(k), col = take(k);
+    shape.addMesh(local.slice(), col.slice(), undefined, localN.slice(), `body ${e.body}`);
+    meshBodies.push({ body: e.body, buffer: shape.bufferList[shape.bufferList.length - 1], local, localN,
+      out: new Float32Array(k), outN: new Float32Array(k) });
+  }
+  stage.addComponentFromObject(shape).addRepresentation('buffer');
+  body.dataset.meshBodies = String(meshBodies.length);
+}
+function moveMeshes(pos, quat) {
+  for (const m of meshBodies) {
+    const k = m.body, x = quat[4 * k], y = quat[4 * k + 1], z = quat[4 * k + 2], w = quat[4 * k + 3];
+    const r00 = 1 - 2 * (y * y + z * z), r01 = 2 * (x * y - z * w), r02 = 2 * (x * z + y * w);
+    const r10 = 2 * (x * y + z * w), r11 = 1 - 2 * (x * x + z * z), r12 = 2 * (y * z - x * w);
+    const r20 = 2 * (x * z - y * w), r21 = 2 * (y * z + x * w), r22 = 1 - 2 * (x * x + y * y);
+    const px = pos[3 * k], py = pos[3 * k + 1], pz = pos[3 * k + 2];
+    const L = m.local, N = m.localN, P = m.out, Q = m.outN;
+    for (let i = 0; i < L.length; i += 3) {
+      const a = L[i], b = L[i + 1], c = L[i + 2], na = N[i], nb = N[i + 1], nc = N[i + 2];
+      P[i] = px + r00 * a + r01 * b + r02 * c; P[i + 1] = py + r10 * a + r11 * b + r12 * c; P[i + 2] = pz + r20 * a + r21 * b + r22 * c;
+      Q[i] = r00 * na + r01 * nb + r02 * nc; Q[i + 1] = r10 * na + r11 * nb + r12 * nc; Q[i + 2] = r20 * na + r21 * nb + r22 * nc;
+    }
+    m.buffer.setAttributes({ position: P, normal: Q });
+  }
+  if (!meshesFramed && meshBodies.length) {   // the first placed pose: frame the meshes, not only the origins
+    meshesFramed = true;
+    let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (const m of meshBodies)
+      for (let i = 0; i < m.out.length; ++i) lo[i % 3] = Math.min(lo[i % 3], m.out[i]), hi[i % 3] = Math.max(hi[i % 3], m.out[i]);
+    const box = new NGL.Box3(new NGL.Vector3(...lo), new NGL.Vector3(...hi));
+    stage.animationControls.zoomMove(box.getCenter(new NGL.Vector3()), stage.getZoomForBox(box), 0);
+  }
+}
+
+// Overlays: per user the grabbed point, the device cursor (proxy point) with its reach (a translucent
+// sphere through the body origin a press would grab), the spring and the force arrow. The buffers are made
+// once and only their attributes change per frame (no new shaders, no new component); hidden primitives
+// get radius 0.
+let spheres = null, springs = null, arrows = null, reaches = null;
 function makeOverlay(n) {
   const z = (k) => new Float32Array(k);
   const col = z(3 * n);
@@ -88,19 +172,31 @@ function makeOverlay(n) {
   shape.addBuffer(spheres); shape.addBuffer(springs); shape.addBuffer(arrows);
   overlay = stage.addComponentFromObject(shape);
   overlay.addRepresentation('buffer');
+  reaches = new NGL.SphereBuffer({ position: z(3 * n), color: col.map((x) => 0.6 + 0.4 * x), radius: z(n) });
+  const rs = new NGL.Shape('reach');
+  rs.addBuffer(reaches);
+  stage.addComponentFromObject(rs).addRepresentation('buffer', { opacity: 0.18, depthWrite: false });
 }
 function drawOverlay(f) {
   const n = hello.users;
-  const sp = new Float32Array(6 * n), sr = new Float32Array(2 * n);
+  const sp = new Float32Array(6 * n), sr = new Float32Array(2 * n), rp = new Float32Array(3 * n), rr = new Float32Array(n);
   const a1 = new Float32Array(3 * n), a2 = new Float32Array(3 * n), ar = new Float32Array(n), cr = new Float32Array(n);
+  let cursors = 0, reachShown = 0;
   for (const u of f.users) {
     if (u.id >= n) continue;
     if (u.grab) { sp.set(u.grab, 6 * u.id); sr[2 * u.id] = 1.8; }
-    if (u.proxy && (u.grab || u.id === f.you)) {
+    if (u.proxy) {   // every user's device, any kind, grabbing or not
       sp.set(u.proxy, 6 * u.id + 3); sr[2 * u.id + 1] = 1.2;
+      cursors += 1;
       if (u.grab) { a1.set(u.grab, 3 * u.id); a2.set(u.proxy, 3 * u.id); cr[u.id] = 0.2; }
+      // near the scene only (the display spans ~80 units): a large translucent sphere costs a software
+      // rasteriser a full-screen blend and says nothing about aiming
+      else if (u.reach > 0 && u.reach <= REACH_MAX) { rp.set(u.proxy, 3 * u.id); rr[u.id] = u.reach; reachShown += 1; }
     }
   }
+  reaches.setAttributes({ position: rp, radius: rr });
+  body.dataset.cursors = String(cursors);
+  body.dataset.reaches = String(reachShown);
   springs.setAttributes({ position1: a1.slice(), position2: a2.slice(), radius: cr });
   a1.fill(0); a2.fill(0);
   for (const u of f.users) {
@@ -139,7 +235,8 @@ function hud(f, fps) {
     html += `<tr><td class="k" style="color:${col}">user ${u.id}${u.id === f.you ? ' (you)' : ''}</td>` +
       `<td>|f| ${u.fn.toFixed(3)} N${u.clamped ? ' (clamped)' : ''}</td>` +
       `<td><span class="bar"><i style="width:${(100 * frac).toFixed(0)}%;background:${col}"></i></span></td></tr>` +
-      `<tr><td></td><td colspan="2">coupler ${(u.rate_hz / 1000).toFixed(1)} kHz · snapshot age ${u.age_ms.toFixed(1)} ms · ${wd}` +
+      `<tr><td></td><td colspan="2">coupler ${(u.rate_hz / 1000).toFixed(1)} kHz · ` +
+      `${u.age_ms >= 0 ? `snapshot age ${u.age_ms.toFixed(1)} ms` : 'no grab'} · ${wd}` +
       `${u.body ? ' · body ' + u.body : ''}</td></tr>`;
   }
   document.getElementById('hudtab').innerHTML = html;
@@ -224,14 +321,19 @@ function movePositions(pos, now) {
 
 function render(now) {
   requestAnimationFrame(render);
-  if (!comp || !pendingPositions) return;
+  if (!comp || !pending || !reaches) return;   // reaches: the overlays are made (after a robot's meshes)
   const now0 = performance.now();
-  const { pos, frame: f } = pendingPositions;
-  pendingPositions = null;
-  if (pos.length === 3 * hello.points) movePositions(pos, now);
-  if (typeof f.active === 'string') {   // per body, sent when the active region changed
+  const { pos, frame: f, active } = pending;
+  pending = null;
+  if (pos) lastPos = pos;
+  if (pos && pos.length >= 3 * hello.points) {
+    movePositions(pos.subarray(0, 3 * hello.points), now);
+    if (hello.quats && meshBodies.length && pos.length === 3 * hello.points + 4 * (hello.bodies + 1))
+      moveMeshes(pos, pos.subarray(3 * hello.points));
+  }
+  if (typeof active === 'string') {   // per body, sent when the active region changed
     const pb = hello.point_body;
-    for (let i = 0; i < pb.length; ++i) activeOfPoint[i] = f.active.charCodeAt(pb[i]) === 49 ? 1 : 0;
+    for (let i = 0; i < pb.length; ++i) activeOfPoint[i] = active.charCodeAt(pb[i]) === 49 ? 1 : 0;
     maskDirty = true;
   }
   if (maskDirty && now - lastMaskUpdate > 250) {   // recolouring costs a buffer update: at most 4 per second
@@ -247,6 +349,8 @@ function render(now) {
   while (fpsTimes.length && now - fpsTimes[0] > 1000) fpsTimes.shift();
   framesRendered += 1;
   body.dataset.frames = String(framesRendered);
+  body.dataset.wsBytes = String(wsBytes);
+  body.dataset.wsFrames = String(wsFrames);
   const me = f.users.find((u) => u.id === f.you);
   body.dataset.forceN = me ? me.fn.toFixed(4) : '0';
   body.dataset.grab = me && me.grab ? '1' : '0';
@@ -295,9 +399,12 @@ window.addEventListener('mousedown', (e) => {
   const [x, y, r] = canvasXY(e);
   if (x < 0 || y < 0 || x > r.width || y > r.height) return;
   const pp = stage.pickingControls.pick(x, y);
-  // an atom, or the nearer atom of a picked bond; anything else (empty space, an overlay): NGL rotates
-  const atom = pp ? (pp.atom || (pp.bond ? pp.closestBondAtom : undefined)) : undefined;
-  body.dataset.pick = atom ? `atom ${atom.index}` : pp ? pp.type : 'nothing';
+  // an atom, the nearer atom of a picked bond, or a robot's mesh (its body's point: body scenes have one
+  // point per body); anything else (empty space, an overlay): NGL rotates
+  const mesh = pp && pp.mesh && /^body (\d+)$/.exec(pp.mesh.name || '');
+  const atom = mesh ? comp.structure.getAtomProxy(Number(mesh[1]))
+    : pp ? (pp.atom || (pp.bond ? pp.closestBondAtom : undefined)) : undefined;
+  body.dataset.pick = mesh ? `mesh body ${mesh[1]}` : atom ? `atom ${atom.index}` : pp ? pp.type : 'nothing';
   if (!atom) return;
   e.stopPropagation();
   e.preventDefault();
@@ -334,6 +441,32 @@ window.addEventListener('wheel', (e) => {
   send({ t: 'move', p: [p.x, p.y, p.z] });
 }, { capture: true, passive: false });
 window.addEventListener('blur', () => { if (grab) { grab = null; send({ t: 'up' }); } });
+
+// For tests: client coordinates of the centre of body k's mesh as drawn now (null: no mesh), and of the
+// centres of n of its triangles.
+function onScreen(c) {
+  const s = stage.viewerControls.getPositionOnCanvas(c);
+  const r = stage.viewer.renderer.domElement.getBoundingClientRect();
+  return { x: r.left + s.x, y: r.top + (r.height - s.y) };
+}
+window.haptreeMeshOnScreen = (k) => {
+  const m = meshBodies.find((e) => e.body === k);
+  if (!m) return null;
+  const c = new NGL.Vector3();
+  for (let i = 0; i < m.out.length; i += 3) c.x += m.out[i], c.y += m.out[i + 1], c.z += m.out[i + 2];
+  return onScreen(c.multiplyScalar(3 / m.out.length));
+};
+window.haptreeMeshTrianglesOnScreen = (k, n) => {
+  const m = meshBodies.find((e) => e.body === k);
+  if (!m) return [];
+  const tris = m.out.length / 9, out = [];
+  for (let t = 0; t < tris; t += Math.max(1, Math.floor(tris / n))) {
+    const o = 9 * t, P = m.out;
+    out.push(onScreen(new NGL.Vector3((P[o] + P[o + 3] + P[o + 6]) / 3, (P[o + 1] + P[o + 4] + P[o + 7]) / 3,
+      (P[o + 2] + P[o + 5] + P[o + 8]) / 3)));
+  }
+  return out;
+};
 
 // For tests and scripts: canvas-relative client coordinates of display point i.
 window.haptreePointOnScreen = (i) => {
