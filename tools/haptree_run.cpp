@@ -63,14 +63,9 @@ std::unique_ptr<haptree::Viewer> start_viewer(haptree::bus::Bus& bus, const hapt
   vo.tls_key = vl.tls_key;
   vo.mesh_paths = vl.mesh_paths;
   auto v = std::make_unique<haptree::Viewer>(bus, vo);
-<<<<<<< HEAD
   std::fprintf(out, "viewer: open %s\n", v->url().c_str());
+  if (!v->watch_url().empty()) std::fprintf(out, "viewer: watch only %s\n", v->watch_url().c_str());
   std::fflush(out);
-=======
-  std::printf("viewer: open %s\n", v->url().c_str());
-  if (!v->watch_url().empty()) std::printf("viewer: watch only %s\n", v->watch_url().c_str());
-  std::fflush(stdout);
->>>>>>> main
   return v;
 }
 }  // namespace
@@ -97,14 +92,9 @@ int main(int argc, char** argv) {
   app.add_option("--scene", so.scene, "chain|binary_tree|random_tree|star|protein_like, molecule name or PDB")->capture_default_str();
   app.add_option("--n", so.n, "bodies of a procedural scene (count)")->check(CLI::Range(1, 1 << 20))->capture_default_str();
   app.add_option("--urdf", so.urdf, "URDF file instead of --scene");
-<<<<<<< HEAD
+  app.add_option("--mesh-path", vl.mesh_paths, "viewer: folder(s) where the URDF's package:// and relative mesh files are found (paths)");
   app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget, active degrees of freedom (count)")->check(CLI::Range(1, 1 << 24))->capture_default_str();
   app.add_option("--dt", so.dt, "time step, scene time units: s for procedural and URDF scenes, ps for molecules (default: 0.001 s; 0.0005 ps for molecules)")->check(haptree::bus::positive(1.0))->capture_default_str();
-=======
-  app.add_option("--mesh-path", vl.mesh_paths, "viewer: folder(s) where the URDF's package:// and relative mesh files are found");
-  app.add_option("--budget-dofs", so.budget_dofs, "adaptive budget")->check(CLI::Range(1, 1 << 24))->capture_default_str();
-  app.add_option("--dt", so.dt, "sim time step (scene units)")->check(haptree::bus::positive(1.0))->capture_default_str();
->>>>>>> main
   std::vector<double> gravity;
   app.add_option("--gravity", gravity,
                  "X,Y,Z gravity of procedural/URDF scenes, m/s^2 (default: none for protein_like, which "

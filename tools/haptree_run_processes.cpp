@@ -417,13 +417,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       if (!se.viewer_tls_cert.empty()) vw.insert(vw.end(), {"--tls-cert", se.viewer_tls_cert, "--tls-key", se.viewer_tls_key});
       children.push_back({"viewer", log_dir + "/viewer.log"});
       children.back().pid = spawn(vw, children.back().log);
-<<<<<<< HEAD
-      std::fprintf(se.json ? stderr : stdout, "viewer: open http://%s:%d/\n", se.viewer_bind.c_str(), se.viewer_port);
-=======
-      std::printf("viewer: open %s://%s:%d/%s\n", se.viewer_tls_cert.empty() ? "http" : "https", se.viewer_bind.c_str(),
-                  se.viewer_port, token.empty() ? "" : ("?token=" + token).c_str());
-      std::fflush(stdout);
->>>>>>> main
+      std::fprintf(se.json ? stderr : stdout, "viewer: open %s://%s:%d/%s\n", se.viewer_tls_cert.empty() ? "http" : "https",
+                   se.viewer_bind.c_str(), se.viewer_port, token.empty() ? "" : ("?token=" + token).c_str());
+      std::fflush(se.json ? stderr : stdout);
     }
     spdlog::info("haptree_run --processes: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {:.0f} s; "
                  "bus {} ({}), logs in {}",
