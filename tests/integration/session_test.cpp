@@ -271,10 +271,12 @@ TEST(SessionFile, TwoHostsRecipeInDocsIsTheTestedFile) {
   const auto close = doc.find("```\n", open + 8);
   ASSERT_NE(close, std::string::npos);
   EXPECT_EQ(doc.substr(open + 8, close - open - 8), fs.str());
-  // and every program reads it
+  // and every program reads it (the viewer's token file must exist: the host's is not here)
+  const std::string token = write_file("viewer.token", "session-test-token-0123456789\n");
   for (const auto& [prog, exe] : programs()) {
     const Output r = run(exe + " --config " HAPTREE_SOURCE_DIR "/examples/sessions/two_hosts.toml --print-config" +
-                      (prog == "imd_bridge" ? " --scene ala20" : ""), false);
+                      (prog == "imd_bridge" ? " --scene ala20" : "") + (prog == "viewer" ? " --token-file " + token : ""),
+                      false);
     EXPECT_EQ(r.rc, 0) << prog << ":\n" << r.out;
   }
 }
