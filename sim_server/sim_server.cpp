@@ -393,7 +393,15 @@ void SimServer::record_trajectory() {
 // The scene state at the display rate, in chunks spread over the next steps (each chunk's poses
 // from its own step, O(chunk) each, from the frontier caches): no step pays for every body.
 void SimServer::publish_scene_state(double step_ms) {
-  scene_step_ms_ = step_ms;
+  // The header is the state's at its start: every chunk of one state carries the same version, time and
+  // active count, so a reader can tell the chunks of one state from the next one's.
+  lcmt_scene_state& s = scene_msg_;
+  s.version = version_;
+  s.sim_time = state_->t;
+  s.active_dofs = ad_->report.active_dofs;
+  s.neglected_metric = ad_->report.neglected_metric;
+  s.step_ms = step_ms;
+  s.total_bodies = model_->nbodies;
   scene_chunk_ = 0;
   publish_scene_chunks();
 }
@@ -411,12 +419,6 @@ void SimServer::publish_scene_chunks() {
   const int per_step = std::max(1, static_cast<int>(std::ceil(2.0 * chunks / std::max(1.0, steps_per_frame))));
   lcmt_scene_state& s = scene_msg_;
   bus::stamp(s, instance_id_);
-  s.version = version_;
-  s.sim_time = state_->t;
-  s.active_dofs = ad_->report.active_dofs;
-  s.neglected_metric = ad_->report.neglected_metric;
-  s.step_ms = scene_step_ms_;
-  s.total_bodies = m.nbodies;
   for (int c = 0; c < per_step && scene_chunk_ < chunks; ++c, ++scene_chunk_) {
     const int first = scene_chunk_ * kChunk;
     const int n = std::min(kChunk, m.nbodies - first);

@@ -138,7 +138,6 @@ class SimServer {
   std::vector<int> loaded_, keep_;  // bodies with a user force (robot scenes); grabbed bodies
   int scene_chunk_ = -1;            // next scene-state chunk to publish (-1: none pending)
   lcmt_scene_state scene_msg_;      // reused (no allocation per chunk once sized)
-  double scene_step_ms_ = 0;
   bool guard_state();
   void publish_scene_chunks();
   // Trajectory (--trajectory): written after a healthy step when due; an I/O error stops the

@@ -160,7 +160,7 @@ TEST(SceneState, LargeSceneIsSplitIntoDatagramSizedChunksWithActiveFlags) {
   SimServerOptions o;
   o.scene = "chain";
   o.n = 2500;
-  o.steps = 3;
+  o.steps = 8;   // the chunks of one state go out one per step after it is started: 3 chunks, then spare steps
   o.budget_dofs = 48;
   SimServer server(bus, o);
   std::vector<lcmt_scene_state> got;
