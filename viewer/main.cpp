@@ -11,7 +11,7 @@
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree viewer: serves a web page with the live scene (NGL), the grabs, the feedback forces and a\n"
-               "HUD; a tab's mouse drives the `browser` device of a free user (device_bridge --kind browser).\n"
+               "HUD; a tab's mouse drives the `browser` device of a free user (device_bridge --device-kind browser).\n"
                "Works beside any session: embedded, --processes, across hosts, or an lcm-logplayer replay."};
   haptree::bus::ProgramCli cli(app, "viewer",
                                {{"--bind", "--viewer-bind"}, {"--port", "--viewer-port"}, {"--users", "--viewer-users"}});

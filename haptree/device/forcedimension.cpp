@@ -50,7 +50,7 @@ struct DhdApi {
 
 constexpr const char* kInstallHint =
     "install the Force Dimension SDK for Linux (libdrd.so.3 / libdhd.so.3 on the loader path, e.g. /usr/local/lib "
-    "then ldconfig; it needs libusb-1.0), or pass --option lib=/path/to/libdhd.so.3 (docs/devices.md)";
+    "then ldconfig; it needs libusb-1.0), or pass --device-option lib=/path/to/libdhd.so.3 (docs/devices.md)";
 
 // The device table entry of a DHD system type ("" if the table has none).
 const char* table_name(int type) {

@@ -92,7 +92,7 @@ struct HdApi {
 
 constexpr const char* kInstallHint =
     "install 3D Systems' OpenHaptics runtime and the Touch device driver for Linux (libHD.so on the loader path, "
-    "GTDD_HOME set for the Touch), or pass --option lib=/path/to/libHD.so (docs/devices.md)";
+    "GTDD_HOME set for the Touch), or pass --device-option lib=/path/to/libHD.so (docs/devices.md)";
 
 // Servo ticks (~1 ms) after which a command not refreshed by the device loop is replaced by zero force.
 constexpr uint64_t kStaleTicks = 50;

@@ -272,12 +272,12 @@ struct Session {
 };
 
 std::vector<std::string> hd_args(std::vector<std::string> extra = {}) {
-  std::vector<std::string> a = {"--kind", "openhaptics", "--option", std::string("lib=") + FAKE_HD_LIB};
+  std::vector<std::string> a = {"--device-kind", "openhaptics", "--device-option", std::string("lib=") + FAKE_HD_LIB};
   a.insert(a.end(), extra.begin(), extra.end());
   return a;
 }
 std::vector<std::string> dhd_args(std::vector<std::string> extra = {}) {
-  std::vector<std::string> a = {"--kind", "forcedimension", "--option", std::string("lib=") + FAKE_DHD_LIB};
+  std::vector<std::string> a = {"--device-kind", "forcedimension", "--device-option", std::string("lib=") + FAKE_DHD_LIB};
   a.insert(a.end(), extra.begin(), extra.end());
   return a;
 }
@@ -509,18 +509,18 @@ Result run(const std::vector<std::string>& args, const Env& env, const std::stri
 int lines(const std::string& s) { return static_cast<int>(std::count(s.begin(), s.end(), '\n')); }
 
 TEST(DeviceVendor, MissingLibrarySymbolOrDeviceIsOneClearLineAndExit1) {
-  Result r = run({"--kind", "openhaptics", "--option", "lib=/nonexistent/libHD.so"}, {}, "nolib_hd");
+  Result r = run({"--device-kind", "openhaptics", "--device-option", "lib=/nonexistent/libHD.so"}, {}, "nolib_hd");
   EXPECT_EQ(r.rc, 1) << r.out;
   EXPECT_EQ(lines(r.out), 1) << r.out;
   EXPECT_NE(r.out.find("cannot load /nonexistent/libHD.so"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("install 3D Systems' OpenHaptics runtime"), std::string::npos) << r.out;
   // The default names, in order, when none is given and none is installed.
-  r = run({"--kind", "forcedimension"}, {{"LD_LIBRARY_PATH", "/nonexistent"}}, "nolib_dhd");
+  r = run({"--device-kind", "forcedimension"}, {{"LD_LIBRARY_PATH", "/nonexistent"}}, "nolib_dhd");
   EXPECT_EQ(r.rc, 1) << r.out;
   EXPECT_EQ(lines(r.out), 1) << r.out;
   EXPECT_NE(r.out.find("cannot load libdrd.so.3, libdhd.so.3"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("Force Dimension SDK"), std::string::npos) << r.out;
-  r = run({"--kind", "openhaptics", "--option", std::string("lib=") + FAKE_HD_PARTIAL_LIB}, {}, "nosym");
+  r = run({"--device-kind", "openhaptics", "--device-option", std::string("lib=") + FAKE_HD_PARTIAL_LIB}, {}, "nosym");
   EXPECT_EQ(r.rc, 1) << r.out;
   EXPECT_EQ(lines(r.out), 1) << r.out;
   EXPECT_NE(r.out.find("has no symbol hdScheduleAsynchronous"), std::string::npos) << r.out;
@@ -532,7 +532,7 @@ TEST(DeviceVendor, MissingLibrarySymbolOrDeviceIsOneClearLineAndExit1) {
   EXPECT_EQ(r.rc, 1) << r.out;
   EXPECT_EQ(lines(r.out), 1) << r.out;
   EXPECT_NE(r.out.find("no Force Dimension device found (dhdOpen: no device found (fake))"), std::string::npos) << r.out;
-  r = run(hd_args({"--option", "axes=x,x,z"}), {}, "badaxes");
+  r = run(hd_args({"--device-option", "axes=x,x,z"}), {}, "badaxes");
   EXPECT_EQ(r.rc, 1) << r.out;
   EXPECT_NE(r.out.find("axes 'x,x,z': axis x used twice"), std::string::npos) << r.out;
 }
@@ -553,7 +553,7 @@ TEST(DeviceVendor, ProbePrintsModelSerialLimitsPositionButtonsAndRendersNoForce)
     if (e.is_force()) EXPECT_EQ(e.norm(), 0.0);
   }
   // Force Dimension, found by its default name on the loader path (libdrd.so.3 absent, libdhd.so.3 found).
-  r = run({"--kind", "forcedimension", "--probe"},
+  r = run({"--device-kind", "forcedimension", "--probe"},
           {{"LD_LIBRARY_PATH", FAKE_DHD_DIR}, {"FAKE_HAPTIC_PATH", "0:0.01,0.02,0.03"}, {"FAKE_HAPTIC_BUTTONS", "0:2"}},
           "probe_dhd");
   EXPECT_EQ(r.rc, 0) << r.out;

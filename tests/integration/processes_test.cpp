@@ -48,8 +48,8 @@ int run_three(int out_fd, bool shm) {
                                   "--rate-hz", "5000", "--sleep", "--stale-after-s", "0.05"};
   cpl.insert(cpl.end(), off.begin(), off.end());
   cpl.insert(cpl.end(), link.begin(), link.end());
-  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--lcm-url", kUrl, "--option", "approach_s=0.2",
-                                  "--option", "hold_s=3"};
+  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--lcm-url", kUrl, "--device-option", "approach_s=0.2",
+                                  "--device-option", "hold_s=3"};
   dev.insert(dev.end(), dev_link.begin(), dev_link.end());
   bus::Bus bus(kUrl);
   std::atomic<int64_t> n{0}, nonfinite{0};

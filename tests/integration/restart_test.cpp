@@ -70,7 +70,7 @@ TEST(Restart, ServerKilledMidSession) {
                                   std::to_string(o.x()), std::to_string(o.y()), std::to_string(o.z())};
   cpl.insert(cpl.end(), common.begin(), common.end());
   // approach 0.2 s, settle 0.2 s, pull 1 s, then hold for the rest of the test (button down throughout)
-  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--shm", "--option", "approach_s=0.2", "--option",
+  std::vector<std::string> dev = {HAPTREE_DEVICE_BRIDGE, "--shm", "--device-option", "approach_s=0.2", "--device-option",
                                   "hold_s=60"};
   dev.insert(dev.end(), common.begin(), common.end());
 

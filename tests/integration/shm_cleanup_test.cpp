@@ -78,7 +78,7 @@ TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
   // The dead coupler's FEEDBACK segment is still there (nobody could unlink it) ...
   EXPECT_FALSE(segments_with("HAPTREE_FEEDBACK_0" + suffix).empty());
   // ... and a new device_bridge without a coupler must render nothing of it.
-  std::vector<std::string> dev2 = {HAPTREE_DEVICE_BRIDGE, "--shm", "--option", "hold_s=60"};
+  std::vector<std::string> dev2 = {HAPTREE_DEVICE_BRIDGE, "--shm", "--device-option", "hold_s=60"};
   dev2.insert(dev2.end(), common.begin(), common.end());
   const std::string log2 = dir + "shm_dead_bridge2.log";
   const pid_t p_dev2 = testing::spawn_logged(dev2, log2);

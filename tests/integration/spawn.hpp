@@ -85,7 +85,7 @@ inline ShmSessionArgs shm_session_args(const std::string& sim_server, const std:
   a.coupler = {coupler, "--grab-body", std::to_string(body), "--rate-hz", "5000", "--sleep", "--stale-after-s", "0.05",
                "--shm"};
   a.coupler.insert(a.coupler.end(), offset.begin(), offset.end());
-  a.device = {device_bridge, "--shm", "--option", "approach_s=0.2", "--option", "hold_s=60"};
+  a.device = {device_bridge, "--shm", "--device-option", "approach_s=0.2", "--device-option", "hold_s=60"};
   for (auto* v : {&a.sim, &a.coupler, &a.device}) v->insert(v->end(), common.begin(), common.end());
   return a;
 }

@@ -1,4 +1,4 @@
-// The real `device_bridge --kind inverse3` against the fake Inverse Service, over LCM tcpq:// through a
+// The real `device_bridge --device-kind inverse3` against the fake Inverse Service, over LCM tcpq:// through a
 // hub on 127.0.0.1 (no network, no root). The test plays the coupler: it reads DEVICE_STATE and
 // publishes FEEDBACK; the fake logs every force the bridge's device sent.
 #include <gtest/gtest.h>
@@ -153,8 +153,8 @@ struct Session {
       : svc(o), hub(0), suffix("_I3_" + std::to_string(::getpid()) + "_" + std::to_string(counter()++)),
         log(::testing::TempDir() + "inverse3_bridge" + suffix + ".log"), coupler(hub.url(), suffix) {
     // timeout_s 0.5: a loaded test machine never looks like a lost link
-    std::vector<std::string> args = {HAPTREE_DEVICE_BRIDGE, "--kind", "inverse3", "--option", "url=" + svc.url(),
-                                     "--option", "timeout_s=0.5",
+    std::vector<std::string> args = {HAPTREE_DEVICE_BRIDGE, "--device-kind", "inverse3", "--device-option", "url=" + svc.url(),
+                                     "--device-option", "timeout_s=0.5",
                                      "--lcm-url", hub.url(), "--channel-suffix", suffix, "--max-force-n", "2"};
     args.insert(args.end(), extra.begin(), extra.end());
     pid = testing::spawn_logged(args, log);
@@ -294,7 +294,7 @@ TEST(Inverse3Bridge, Probe) {
   FakeInverseService svc(o);
   const std::string log = ::testing::TempDir() + "inverse3_bridge_probe.log";
   const pid_t p = testing::spawn_logged(
-      {HAPTREE_DEVICE_BRIDGE, "--kind", "inverse3", "--probe", "--option", "url=" + svc.url()}, log);
+      {HAPTREE_DEVICE_BRIDGE, "--device-kind", "inverse3", "--probe", "--device-option", "url=" + svc.url()}, log);
   ASSERT_GT(p, 0);
   int rc = -1;
   ASSERT_TRUE(exited_within(p, 10.0, &rc));
@@ -313,7 +313,7 @@ TEST(Inverse3Bridge, Probe) {
 TEST(Inverse3Bridge, ServiceNotRunningOneLineExit1) {
   const std::string url = "ws://127.0.0.1:" + std::to_string(free_port());
   const std::string log = ::testing::TempDir() + "inverse3_bridge_no_service.log";
-  const pid_t p = testing::spawn_logged({HAPTREE_DEVICE_BRIDGE, "--kind", "inverse3", "--option", "url=" + url,
+  const pid_t p = testing::spawn_logged({HAPTREE_DEVICE_BRIDGE, "--device-kind", "inverse3", "--device-option", "url=" + url,
                                          "--lcm-url", "memq://"},
                                         log);
   ASSERT_GT(p, 0);
@@ -334,7 +334,7 @@ TEST(Inverse3Bridge, ServiceNotRunningOneLineExit1) {
 TEST(Inverse3Bridge, OlderServiceWithForceKeyValues) {
   FakeInverseOptions o;
   o.old_dialect = true;
-  Session s(o, {"--option", "force_key=values"});
+  Session s(o, {"--device-option", "force_key=values"});
   ASSERT_GT(s.pid, 0);
   ASSERT_TRUE(s.coupler.wait_states(100, 5.0)) << slurp(s.log);
   s.coupler.set_force(Vec3(0.5, 0, 0));
