@@ -103,7 +103,7 @@ struct Data {
   // reused) and a top-down, and q̈ += δ. The mobility-form assembly Φ_C = Φ_L − Φ_L W Φ_L is not
   // backward stable next to light bodies or between large subassemblies; inverse dynamics is, so
   // one step recovers the digits it loses (binary tree 1024: 1.2e-12 → 5e-16; bacteriorhodopsin
-  // 2.4e-12 → 2.8e-15) for 1.2–1.3× the plain pass (docs/benchmarks.md).
+  // 2.4e-12 → 2.8e-15) for 1.1–1.4× the plain pass (docs/performance.md).
   // kDouble computes r in double from the pass's poses: q̈ then solves the problem of the *rounded*
   // poses, whose own distance from the exact one is the model's conditioning times ε (chain 1024:
   // 6e-12, as Bullet and Simbody). kExtended computes r in long double from q (kinematics

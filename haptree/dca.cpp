@@ -623,7 +623,7 @@ Eigen::Matrix<double, N, N> pivoted_inverse(Eigen::Matrix<double, N, N> A) {
 
 // The leaf-form kernel for nJ = NJ, nc = NC (Eigen::Dynamic for both: any joint). Writes R, Y, F
 // and the bias terms f_J0 and a_L0 (no handle forces). Fixed sizes for the revolute/prismatic case
-// are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x (benchmarks_dca.md).
+// are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x.
 template <int NJ, int NC>
 void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointMat& Sd,
                       const JointMat& Td, const KMat<NJ, 1>& taup, const Vec6& bO, const Vec6& cp,
@@ -1300,7 +1300,7 @@ int set_dca_threads(const Model& m, Data& d, int threads) {
   if (threads == 0) {
     // A free core: the 1-minute load average (this thread included) leaves at least one CPU idle.
     // On a loaded machine the second thread waits for a core at every barrier: 2 threads at load
-    // 20 on 2 CPUs took 5x the serial wall time (docs/benchmarks.md, issue 13.4).
+    // 20 on 2 CPUs took 5x the serial wall time.
     const int cpus = cpus_available();
     double load = 1e9;
     const bool free_core = getloadavg(&load, 1) == 1 && load <= cpus - 1;

@@ -23,6 +23,9 @@ PAGES=(
   docs/imd.md
   docs/molecules.md
   docs/network_faults.md
+  docs/performance.md
+  docs/processes.md
+  docs/devices.md
   docs/python.md
   docs/security.md
   docs/sessions.md

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Plot bench_peers CSV: time per forward-dynamics call vs n per engine, and error vs the oracle.
 
-usage: tools/plot_peers.py bench_peers.csv -o docs/benchmarks_peers.png [--table]
+usage: tools/plot_peers.py bench_peers.csv -o peers.png [--table]
 --table also prints the CSV as a markdown table (µs median, relative errors) on stdout.
 Times: the thread-CPU median per call (column cpu_us_median) when the CSV has it, else the wall-clock
 median (us_median); the table shows both.
@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("csv")
-    ap.add_argument("-o", "--out", default="benchmarks_peers.png")
+    ap.add_argument("-o", "--out", default="peers.png")
     ap.add_argument("--table", action="store_true", help="print a markdown table on stdout")
     a = ap.parse_args()
     rows = list(csv.DictReader(open(a.csv)))
