@@ -88,7 +88,7 @@ class DeviceBridge {
   // FEEDBACK messages refused because another coupler instance (the one followed) is live.
   int64_t feedback_refused() const { return refused_.load(); }
   int64_t coupler_takeovers() const { return takeovers_.load(); }
-  // run()'s thread computes with flush-to-zero + denormals-are-zero (issue 13.3).
+  // run()'s thread computes with flush-to-zero + denormals-are-zero.
   bool ftz_daz() const { return ftz_daz_.load(); }
 
  private:

@@ -553,7 +553,7 @@ void build_caches(const Model& m, Data& d, AdaptiveData& ad) {
     for_each_body(t, F, stack, [&](int k) { ad.frontier_of_body[k] = F; });
   // r_k − r_ref from the local offsets d_k (ids ascending: a node's bodies are a connected
   // subtree whose smallest id is ref, so parent[k] is done first), never r_k − r_ref of two world
-  // positions, which lost ε·|r| at a far origin (issue 14).
+  // positions, which lost ε·|r| at a far origin.
   for (int k = 0; k < m.nbodies; ++k) {
     if (ad.frontier_of_body[k] < 0) continue;
     const int ref = ad.ref_body[ad.frontier_of_body[k]];

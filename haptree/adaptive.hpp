@@ -17,7 +17,7 @@
 // Selection (§9): a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
 // of every node (§8), and a greedy top-down walk activates the nodes with the largest metric until
 // the neglected metric Σ_{inactive} q̈ᵀ A q̈ is ≤ ε (threshold mode) or the DOF budget is used.
-// When it runs (issue 13.1): when ε or the budget changes, and then — with reselect_every = 0, the
+// When it runs: when ε or the budget changes, and then — with reselect_every = 0, the
 // default — at an error-controlled interval: each selection first computes, exactly, the
 // neglected metric the replaced region has *now* (a check costing |active| top-down steps on the
 // full pass it needs anyway), measures how fast it grew since that region was selected, and sets
@@ -49,7 +49,7 @@ struct AdaptiveOptions {
   int interval_max = 1000;    // error-controlled: longest interval
   double estimate_growth = 1.0;      // budget mode: bound = (1 + this)× the selection's value
   double estimate_floor_rel = 1e-6;  // ... + this × the total metric (round-off level values)
-  // Selection cost (issue 13.1, ALGORITHMS §10.2/§10.4): a node whose subtree has no joint that
+  // Selection cost (ALGORITHMS §10.2/§10.4): a node whose subtree has no joint that
   // moved since the last selection keeps its configuration-only coefficients Φ, W, Ψ (cached in its
   // reference body's frame, only rotated on use); only its bias terms b, β, p, η are recomputed,
   // with matrix–vector products. Nodes with a moved joint (the active region's) get the full
@@ -138,7 +138,7 @@ struct AdaptiveData {
   std::vector<Vec3> pred_offset;       // (nbodies) r_J − r_ref of J's predecessor's frontier node
   // Active fixed-joint cluster nodes assembled in inertia form, as the full pass does: a weld
   // joined by the mobility difference formula cancels ~(weld length/gyration radius)² of the
-  // digits (issue 14). Eligible: those whose inertia-form children are leaves or such nodes.
+  // digits. Eligible: those whose inertia-form children are leaves or such nodes.
   // if_bodies: their bodies, ascending, for the compensated cluster offsets; if_top: the first
   // body of each such region.
   std::vector<char> inertia_form;      // (nnodes)

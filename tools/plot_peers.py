@@ -64,7 +64,7 @@ def main():
         axes[0][col].set_ylabel(tlabel)
         axes[1][col].set_title(f"{model}: relative q̈ error vs reference")
         axes[1][col].set_xlabel("DOF n")
-        axes[1][col].set_ylabel("‖q̈ − q̈_ref‖ / ‖q̈_ref‖ (oracle; quad-refined since 2026-12-02)")
+        axes[1][col].set_ylabel("‖q̈ − q̈_ref‖ / ‖q̈_ref‖ (oracle; quad-refined)")
         for ax in (axes[0][col], axes[1][col]):
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
