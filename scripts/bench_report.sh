@@ -4,10 +4,11 @@
 # each with the machine and the exact command beside it. Re-running it is how the page is updated.
 #
 #   scripts/bench_report.sh [options] [SECTION...]
-#     SECTION      dca adaptive coupler forcefield scaling threads latency (default: all but latency)
+#     SECTION      dca dcathreads adaptive coupler forcefield bus scaling threads latency
+#                  (default: all but latency)
 #     --build DIR  build folder with the benchmark programs (default build; configure with
 #                  -DHAPTREE_BUILD_BENCH=ON, then: cmake --build DIR --target bench_peers dca_bench
-#                  adaptive_sweep coupling_bench molecule_bench scaling_bench stress_report)
+#                  adaptive_sweep coupling_bench molecule_bench bus_bench scaling_bench stress_report)
 #     --data DIR   where the CSV go (default docs/data)
 #     --page FILE  the page to rewrite (default docs/performance.md)
 #     --quick      tiny sizes and durations (under a minute in all): checks the script, not the machine
@@ -17,9 +18,11 @@
 #   dca        bench_peers: full DCA (default and one plain pass), the adaptive pass, Bullet, Simbody,
 #              MuJoCo (the peers compiled in) on chains, binary trees, the protein-like tree and
 #              bacteriorhodopsin of 1 024 and 4 096 bodies                                    (~9 min)
+#   dcathreads dca_bench: one DCA pass on one and on two threads (1 024 bodies, protein-like)   (~40 s)
 #   adaptive   adaptive_sweep: step time against error, budgets and thresholds                  (~35 s)
 #   coupler    coupling_bench: the O(log n) coupler against n, 1 grab                            (~20 s)
 #   forcefield molecule_bench: bacteriorhodopsin, force field and whole step                      (~10 s)
+#   bus        bus_bench: the transports alone, a ping-pong of real messages (udpm as root)      (~10 s)
 #   scaling    scaling_bench: the adaptive step against n (1 024 … 65 536 bodies)                (~2 min)
 #   threads    no run: renders docs/data/scaling_16_threads/ (scripts/scaling_many_cores.sh with
 #              OUT=docs/data/scaling_16_threads on a many-core machine re-measures it)
@@ -41,7 +44,7 @@ while [ $# -gt 0 ]; do
     *) sections+=("$1"); shift ;;
   esac
 done
-[ ${#sections[@]} -gt 0 ] || sections=(dca adaptive coupler forcefield scaling threads)
+[ ${#sections[@]} -gt 0 ] || sections=(dca dcathreads adaptive coupler forcefield bus scaling threads)
 cd "$root"
 tables="python3 $root/scripts/bench_tables.py"
 [ -f "$page" ] || { echo "bench_report: $page: no such file" >&2; exit 2; }
@@ -94,6 +97,29 @@ for s in "${sections[@]}"; do
       run dca "$build/bench/bench_peers" "${args[@]}" --csv "$data/peers.csv"
       [ $dry -eq 1 ] || $tables peers "$data/peers.csv" > "$tmp/dca.md"
       block dca "$build/bench/bench_peers ${args[*]} --csv $data/peers.csv" ;;
+    dcathreads)
+      have bench/dca_bench dcathreads || continue
+      if [ $quick -eq 1 ]; then args=("--benchmark_filter=BM_(Chain|BinaryTree)(2T)?/16(/|\$)"
+        --benchmark_min_time=0.01 --benchmark_repetitions=2)
+      else args=("--benchmark_filter=BM_(Chain|BinaryTree)(2T)?/1024(/|\$)|BM_ProteinLike(2T)?(/|\$)"
+        --benchmark_min_time=1 --benchmark_repetitions=3); fi
+      run dcathreads "$build/bench/dca_bench" "${args[@]}" --benchmark_format=csv
+      if [ $dry -eq 0 ]; then
+        cp "$tmp/dcathreads.out" "$data/dca_bench.csv"
+        $tables gbench "$data/dca_bench.csv" > "$tmp/dcathreads.md"
+      fi
+      block dcathreads "$build/bench/dca_bench '${args[0]}' ${args[*]:1} --benchmark_format=csv" ;;
+    bus)
+      have bench/bus_bench bus || continue
+      if [ $quick -eq 1 ]; then args=(--transport memq --round-trips 200 --warmup 50)
+      else args=(--transport shm-thread --transport shm-process --transport memq --round-trips 20000)
+        [ "$(id -u)" -ne 0 ] || args+=(--transport udpm); fi
+      run bus "$build/bench/bus_bench" "${args[@]}"
+      if [ $dry -eq 0 ]; then
+        $tables md2csv < "$tmp/bus.out" > "$data/bus.csv"
+        grep '^|' "$tmp/bus.out" > "$tmp/bus.md"
+      fi
+      block bus "$build/bench/bus_bench ${args[*]}" ;;
     adaptive)
       have tools/adaptive_sweep adaptive || continue
       if [ $quick -eq 1 ]; then args=(--scenes protein_like,ala20 --budgets 16,48 --eps-rel 1e-4 --robot-steps 20

@@ -6,6 +6,7 @@
   bench_tables.py scaling CSV        scaling_bench --csv: the adaptive step against n
   bench_tables.py threads DIR        scaling_threads_T.csv of one machine: full pass against T
   bench_tables.py latency CSV        scripts/measure_latency.sh CSV: the latest run of each row
+  bench_tables.py gbench CSV         a Google Benchmark CSV (dca_bench): mean, median, worst repetition
   bench_tables.py md2csv < TABLE     the first Markdown table on stdin, as CSV on stdout
   bench_tables.py splice PAGE ID F   replace what lies between <!-- bench:ID begin --> and
                                      <!-- bench:ID end --> in PAGE by the contents of F
@@ -196,6 +197,33 @@ def latency(path):
                         f"p99.9 {r['p999_us']}" for r in f) + ".")
 
 
+def gbench(path):
+    with open(path, newline="") as f:
+        lines = f.read().splitlines()
+    start = next((i for i, l in enumerate(lines) if l.startswith("name,")), None)
+    if start is None:
+        sys.exit(f"bench_tables: {path} holds no Google Benchmark CSV")
+    runs, order = {}, []
+    for r in csv.DictReader(lines[start:]):
+        name = r["name"]
+        if re.search(r"_(mean|median|stddev|cv)$", name):
+            continue
+        if name not in runs:
+            runs[name] = []
+            order.append(name)
+        runs[name].append(r)
+    out = []
+    for name in order:
+        rs = runs[name]
+        real = sorted(num(r["real_time"]) for r in rs)
+        cpu = sorted(num(r["cpu_time"]) for r in rs)
+        med = lambda v: v[len(v) // 2] if len(v) % 2 else (v[len(v) // 2 - 1] + v[len(v) // 2]) / 2
+        out.append([name, rs[0].get("bodies", ""), rs[0].get("threads", ""), len(rs),
+                    fmt(sum(real) / len(real), 4), fmt(med(real), 4), fmt(real[-1], 4), fmt(med(cpu), 4)])
+    print(table(["benchmark", "bodies", "threads", "repetitions", "wall µs mean", "median", "worst",
+                 "CPU µs median (all threads)"], out))
+
+
 def md2csv():
     lines = [l.strip() for l in sys.stdin if l.strip().startswith("|")]
     w = csv.writer(sys.stdout)
@@ -228,7 +256,7 @@ def main(argv):
         return 0 if len(argv) >= 2 else 2
     cmd, args = argv[1], argv[2:]
     fns = {"peers": peers, "adaptive": adaptive, "scaling": scaling, "threads": threads,
-           "latency": latency, "md2csv": md2csv, "splice": splice}
+           "latency": latency, "gbench": gbench, "md2csv": md2csv, "splice": splice}
     if cmd not in fns:
         sys.exit(f"bench_tables: unknown command '{cmd}' (see --help)")
     fns[cmd](*args)

@@ -13,10 +13,11 @@ trap 'rm -rf "$tmp"' EXIT
 cp docs/performance.md "$tmp/performance.md"
 before=$(cat docs/performance.md docs/data/*.csv | sha256sum)
 
-declare -A program=([dca]=bench/bench_peers [adaptive]=tools/adaptive_sweep [coupler]=bench/coupling_bench
-                    [forcefield]=bench/molecule_bench [scaling]=bench/scaling_bench)
+declare -A program=([dca]=bench/bench_peers [dcathreads]=bench/dca_bench [adaptive]=tools/adaptive_sweep
+                    [coupler]=bench/coupling_bench [forcefield]=bench/molecule_bench [bus]=bench/bus_bench
+                    [scaling]=bench/scaling_bench)
 sections=()
-for s in dca adaptive coupler forcefield scaling; do
+for s in dca dcathreads adaptive coupler forcefield bus scaling; do
   if [ -x "$build/${program[$s]}" ]; then sections+=("$s"); else echo "not built: ${program[$s]} (block $s not checked)"; fi
 done
 [ -x "$build/bench/coupling_bench" ] || { echo "FAIL: coupling_bench is not built in $build" >&2; exit 1; }
@@ -34,8 +35,8 @@ for s in "${sections[@]}"; do
   grep -q '^machine: ' <<<"$block" || { echo "FAIL: block $s has no machine line" >&2; status=1; }
   grep -qE '^\| [^|]+ \|.*[0-9]' <<<"$block" || { echo "FAIL: block $s has no table row with a number" >&2; status=1; }
 done
-declare -A csv_of=([dca]=peers.csv [adaptive]=adaptive_sweep.csv [coupler]=coupling.csv
-                   [forcefield]=molecule.csv [scaling]=scaling.csv)
+declare -A csv_of=([dca]=peers.csv [dcathreads]=dca_bench.csv [adaptive]=adaptive_sweep.csv
+                   [coupler]=coupling.csv [forcefield]=molecule.csv [bus]=bus.csv [scaling]=scaling.csv)
 for s in "${sections[@]}"; do
   [ "$s" = threads ] && continue
   [ -s "$tmp/data/${csv_of[$s]}" ] || { echo "FAIL: block $s wrote no ${csv_of[$s]}" >&2; status=1; }
