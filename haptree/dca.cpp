@@ -861,7 +861,7 @@ namespace {
 // and bias force p at its reference point o = r_{cluster_ref[node]}: a_o = M⁻¹(Σ_x X_xᵀ f_x + p),
 // X_x the motion shift from o to handle x. Joining two such nodes across a fixed joint adds M and
 // p; joining a one-handle side across a moving joint adds its ABA projection. No difference of
-// large mobilities is formed, so light pieces of a split hub do not cancel (ALGORITHMS §4.4,
+// large mobilities is formed, so light pieces of a split hub do not cancel (docs/algorithms.md §4.4,
 // §16.4). o is a body of the node near most of its mass, not the cluster's root: an inertia moved
 // across a long weld has a condition number ~ (length/radius of gyration)⁴, and its inverse lost
 // 1e-5 of q̈ at 10⁶ m. Mobilities are shifted instead (no cancellation).

@@ -1,4 +1,4 @@
-// Divide-and-conquer articulated-body algorithm (ALGORITHMS §5–§7) in handle-point coordinates.
+// Divide-and-conquer articulated-body algorithm (docs/algorithms.md §5–§7) in handle-point coordinates.
 #pragma once
 
 #include "haptree/data.hpp"

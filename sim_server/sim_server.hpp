@@ -1,7 +1,7 @@
 #pragma once
 
 #include <limits>
-// SimServer: the paper's simulation loop as a class (STYLE.md §7.1). Loads a scene, steps adaptive DCA
+// SimServer: the paper's simulation loop as a class. Loads a scene, steps adaptive DCA
 // dynamics, applies the latest user force of every user, and after every step publishes one coupling
 // snapshot per user with an active grab (HAPTREE_COEFFS_<user>), the scene state at a display rate and
 // process stats at 1 Hz. No math here: the formulas live in haptree/.
