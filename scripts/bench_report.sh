@@ -4,8 +4,8 @@
 # each with the machine and the exact command beside it. Re-running it is how the page is updated.
 #
 #   scripts/bench_report.sh [options] [SECTION...]
-#     SECTION      dca dcathreads adaptive coupler forcefield bus scaling threads latency
-#                  (default: all but latency)
+#     SECTION      dca dcathreads adaptive coupler forcefield bus scaling threads latency viewer
+#                  (default: all but latency and viewer)
 #     --build DIR  build folder with the benchmark programs (default build; configure with
 #                  -DHAPTREE_BUILD_BENCH=ON, then: cmake --build DIR --target bench_peers dca_bench
 #                  adaptive_sweep coupling_bench molecule_bench bus_bench scaling_bench stress_report)
@@ -27,6 +27,8 @@
 #   threads    no run: renders docs/data/scaling_16_threads/ (scripts/scaling_many_cores.sh with
 #              OUT=docs/data/scaling_16_threads on a many-core machine re-measures it)
 #   latency    scripts/measure_latency.sh (root, stress-ng, rt-tests; only when named)       (~6 min)
+#   viewer     tests/browser/viewer_cost.py: the session without viewer, with it, with a headless
+#              chromium tab (chromium; only when named)                                       (~1 min)
 # A program that is not built is said and its block left as it is (exit status 1 at the end).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -181,6 +183,16 @@ for s in "${sections[@]}"; do
       run latency bash scripts/measure_latency.sh "$build" $dur "$data/latency.csv" "$filter"
       [ $dry -eq 1 ] || $tables latency "$data/latency.csv" > "$tmp/latency.md"
       block latency "scripts/measure_latency.sh $build $dur $data/latency.csv '$filter'" ;;
+    viewer)
+      command -v chromium >/dev/null || { echo "bench_report: viewer needs Debian's chromium" >&2; missing=1; continue; }
+      have tools/haptree_run viewer || continue
+      secs=20; [ $quick -eq 0 ] || secs=3
+      run viewer /usr/bin/python3 tests/browser/viewer_cost.py "$build/tools/haptree_run" $secs
+      if [ $dry -eq 0 ]; then
+        $tables md2csv < "$tmp/viewer.out" > "$data/viewer_cost.csv"
+        grep '^|' "$tmp/viewer.out" > "$tmp/viewer.md"
+      fi
+      block viewer "/usr/bin/python3 tests/browser/viewer_cost.py $build/tools/haptree_run $secs" ;;
     *) echo "bench_report: unknown section '$s' (see --help)" >&2; exit 2 ;;
   esac
 done
