@@ -11,7 +11,8 @@
 #                  adaptive_sweep coupling_bench molecule_bench bus_bench scaling_bench stress_report)
 #     --data DIR   where the CSV go (default docs/data)
 #     --page FILE  the page to rewrite (default docs/performance.md)
-#     --quick      tiny sizes and durations (under a minute in all): checks the script, not the machine
+#     --quick      tiny sizes and durations (under a minute in all): checks the script, not the
+#                  machine; without --page/--data it writes into a new temporary folder
 #     --dry-run    print the commands; run nothing, change nothing
 #
 # Sections and what they run (full sizes; --quick shrinks each):
@@ -32,7 +33,7 @@
 # A program that is not built is said and its block left as it is (exit status 1 at the end).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
-build=build data=docs/data page=docs/performance.md quick=0 dry=0
+build=build data= page= quick=0 dry=0
 sections=()
 while [ $# -gt 0 ]; do
   case $1 in
@@ -49,10 +50,18 @@ done
 [ ${#sections[@]} -gt 0 ] || sections=(dca dcathreads adaptive coupler forcefield bus scaling threads)
 cd "$root"
 tables="python3 $root/scripts/bench_tables.py"
-[ -f "$page" ] || { echo "bench_report: $page: no such file" >&2; exit 2; }
-mkdir -p "$data"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
+# A quick run checks the script: unless told otherwise it leaves the committed page and data alone.
+if [ $quick -eq 1 ] && [ -z "$page$data" ] && [ $dry -eq 0 ]; then
+  scratch=$(mktemp -d)
+  page=$scratch/performance.md data=$scratch/data
+  cp docs/performance.md "$page"
+  echo "bench_report: --quick writes into $scratch (give --page/--data to choose)"
+fi
+page=${page:-docs/performance.md} data=${data:-docs/data}
+[ -f "$page" ] || { echo "bench_report: $page: no such file" >&2; exit 2; }
+mkdir -p "$data"
 missing=0
 
 # The machine, as the programs see it: CPU model and cores from the kernel, the ISA level of the
