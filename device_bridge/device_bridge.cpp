@@ -271,7 +271,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
 }
 
 int DeviceBridge::loop(const std::atomic<bool>& stop) {
-  // FTZ/DAZ in the device loop (issue 13.3), as in the coupler's: no subnormal operand costs an assist.
+  // FTZ/DAZ in the device loop, as in the coupler's: no subnormal operand costs an assist.
   const ScopedFlushDenormals ftz;
   ftz_daz_.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
   const double period = 1.0 / opt_.rate_hz;
@@ -356,8 +356,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
     if (mirror_due) {
       // Mirror pairs the coupler actually used: the newest FEEDBACK with the device state it answers,
       // so every mirrored FEEDBACK can be replayed (replay_coupling) whatever the mirror rate. After the
-      // answer to this tick's pose: two udpm sends between a pose and its answer were the shm link's p99
-      // (docs/benchmarks.md, issue 15.1).
+      // answer to this tick's pose: two udpm sends between a pose and its answer were the shm link's p99.
       const lcmt_device_state& used = shm_states_[static_cast<size_t>(fb_shm_.echo_device_seq % kStateRing)];
       if (fb_shm_.seq > mirrored_feedback_seq_ && fb_shm_.echo_device_seq > 0 && used.seq == fb_shm_.echo_device_seq) {
         bus_.publish(ch_state_, used);

@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "haptree/bus/session_config.hpp"
 #include "sim_server/sim_server.hpp"
 
 namespace haptree::tools {
@@ -31,16 +32,15 @@ struct SessionOptions {
   // takes over; the others are browser-only (idle until a tab grabs). -1 = all scripted, no browser.
   int viewer_port = 0;
   std::string viewer_bind = "127.0.0.1";
-  // Viewer access (viewer --token-file etc.): "" token file = a random token the launcher writes into
+  // Viewer access (viewer --viewer-token-file etc.): "" token file = a random token the launcher writes into
   // the log folder (mode 0600) for the viewer and prints in the URL.
   std::string viewer_token_file, viewer_watch_token_file, viewer_tls_cert, viewer_tls_key;
   bool viewer_no_token = false;
   std::vector<std::string> viewer_mesh_paths;
   int scripted_users = -1;
-  // User 0's device: "" = the scripted pull (or the page's browser device); otherwise a registry kind
-  // (device_bridge --device-kind) with these key=value options instead of the script's.
-  std::string device_kind;
-  std::vector<std::string> device_options;
+  // Each user's device (one per user): kind "" = the scripted pull (or the page's browser device);
+  // otherwise a registry kind (device_bridge --device-kind) with its key=value options.
+  std::vector<bus::UserDevice> user_devices;
   std::string session_key_file;   // "" = none (or $HAPTREE_SESSION_KEY_FILE, which the children inherit)
   bool json = false;              // status as one JSON object per line
 };
