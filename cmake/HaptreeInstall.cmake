@@ -9,8 +9,10 @@ else()
   set(HAPTREE_SOVERSION ${PROJECT_VERSION_MAJOR})
 endif()
 
-# Shared libraries and man pages for the installed package and the .debs. Off by default for now:
-# it compiles the libraries position-independent (every library object once more).
+# Shared libraries and man pages for the installed package and the .debs (scripts/test.sh turns it on:
+# CI installs and packages). Off by default: the programs then link position-dependent libraries.
+# With it, each library is compiled once, position-independent, and serves the programs, the static
+# archive, the shared library and the Python module alike (docs/install.md: what it costs).
 option(HAPTREE_PACKAGE "Build what the installed package adds: shared libraries (PIC) and man pages" OFF)
 
 # haptree_export_library(<target> <name>): <target> (a static library) is installed and exported as

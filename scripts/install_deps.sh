@@ -27,7 +27,7 @@ TESTS=(
   chromium python3-websocket                    # viewer browser test: headless chromium over CDP
   python3-mdanalysis                            # DCD trajectories read back by an outside reader (test)
   clang-14 libclang-rt-14-dev                   # libFuzzer targets (scripts/fuzz.sh, docs/fuzzing.md)
-  help2man dpkg-dev                             # man pages and .debs (cpack; scripts/test_install.sh)
+  help2man dpkg-dev file                        # man pages and .debs (cpack finds Depends: with file + dpkg-shlibdeps)
   qemu-user                                     # default binaries run as an older CPU (tests/isa)
   openssl                                       # the viewer's TLS test (openssl req, s_client)
   doxygen                                       # API reference (CMake target docs; CTest label docs)

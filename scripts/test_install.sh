@@ -164,6 +164,9 @@ grep -q "scene ala20" "$WORK/run/session.log" || { tail -30 "$WORK/run/session.l
 tail -3 "$WORK/run/session.log"
 
 step "Debian packages (cpack -G DEB)"
+for tool in file dpkg-shlibdeps; do   # without them cpack leaves Depends: out, with a warning only
+  command -v $tool > /dev/null || fail "cpack needs $tool for Depends: (scripts/install_deps.sh --tests installs it)"
+done
 (cd "$BUILD" && cpack -G DEB -B "$WORK/deb" > "$WORK/cpack.log" 2>&1) || { tail -40 "$WORK/cpack.log"; fail "cpack"; }
 ls "$WORK"/deb/*.deb
 deb() { ls "$WORK"/deb/"$1"_*.deb 2>/dev/null | head -1; }
