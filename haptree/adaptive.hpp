@@ -108,6 +108,9 @@ struct AsyncSelectorHandle {
 // Per-run adaptive workspace, sized once from the Model.
 struct AdaptiveData {
   explicit AdaptiveData(const Model& model);
+  // selection_only: only what a selection and its frontier caches use (the background worker's
+  // copy): the buffers of the hybrid pass, the handover and the impulsive lock stay empty.
+  AdaptiveData(const Model& model, bool selection_only);
   // Active region.
   std::vector<char> active;            // (nnodes) internal node is active
   std::vector<int> active_nodes;       // ids ascending (top-down order)
@@ -211,6 +214,10 @@ inline int frontier_of(const AdaptiveData& ad, int k) {
 // its allocation is not paid inside a step; adaptive_step starts it with its first selection
 // otherwise. `model` must outlive `ad`.
 void start_background_selection(const Model& model, AdaptiveData& ad);
+
+// Heap memory of `ad`'s containers (prefix + name) and, once started, of the background worker's
+// Data, State, AdaptiveData and job buffers (names "worker." + ...). Capacity, not size.
+std::vector<MemoryItem> memory_usage(const AdaptiveData& ad, const std::string& prefix = "AdaptiveData.");
 
 // World pose of body k after an adaptive step, from its frontier node's reference body. O(1).
 inline void body_pose(const Data& d, const AdaptiveData& ad, int k, Mat3& R, Vec3& r) {
