@@ -6,6 +6,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <mutex>
 #include <thread>
 
@@ -62,9 +63,11 @@ AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
     phi += 36 * h * h;
     vec += 6 * h;
   }
-  Psi_buf.assign(phi, 0.0);
-  p_buf.assign(vec, 0.0);
-  eta.assign(nn, 0.0);
+  if (!selection_only) {   // the worker borrows the stepping thread's set (lend_metric_scratch)
+    Psi_buf.assign(phi, 0.0);
+    p_buf.assign(vec, 0.0);
+    eta.assign(nn, 0.0);
+  }
   Phi_loc.assign(phi, 0.0);
   Psi_loc.assign(phi, 0.0);
   W_loc.assign(nn, Mat6::Zero());
@@ -211,13 +214,21 @@ void metric_node(const Model& m, const Data& d, AdaptiveData& ad, int node) {
 
 }  // namespace
 
+// Ψ, p, η in world axes (Psi_buf, p_buf, eta) are written by every selection before it reads
+// them, so the stepping thread lends its set to the worker for the selection in flight and takes
+// it back when the worker is done. This makes sure `ad` holds the set (waits for the worker if
+// need be; allocates only for a copy of an AdaptiveData whose set was lent).
+void ensure_metric_scratch(const Model& m, AdaptiveData& ad);
+
 void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
+  ensure_metric_scratch(m, ad);
   for (int node = m.tree.nnodes() - 1; node >= 0; --node) metric_node(m, d, ad, node);
 }
 
 double metric_value(const Model& m, const AdaptiveData& ad, int node, const double* f) {
   const int h = m.tree.handle_num[node];
   if (m.tree.is_leaf(node)) return 0;
+  if (ad.Psi_buf.empty()) return std::numeric_limits<double>::quiet_NaN();   // lent to the worker
   std::size_t adr = 0, vadr = 0;
   // Offsets match Data's layout (computed the same way).
   for (int n = 0; n < node; ++n) {
@@ -754,6 +765,7 @@ double select_core(const Model& m, Data& d, const State& st, AdaptiveData& ad,
 
 double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
                             const AdaptiveOptions& opt) {
+  ensure_metric_scratch(m, ad);
   int dofs = 0;
   const double neglected = select_core(m, d, st, ad, opt, dofs);
   build_region(m, d, st, ad);
@@ -1100,6 +1112,36 @@ AsyncSelectorHandle::~AsyncSelectorHandle() { delete p; }
 
 namespace {
 
+void swap_metric_scratch(AdaptiveData& a, AdaptiveData& b) {
+  std::swap(a.Psi_buf, b.Psi_buf);
+  std::swap(a.p_buf, b.p_buf);
+  std::swap(a.eta, b.eta);
+}
+
+}  // namespace
+
+void ensure_metric_scratch(const Model& m, AdaptiveData& ad) {
+  if (!ad.Psi_buf.empty()) return;
+  if (AsyncSelector* w = ad.worker.p) {
+    adaptive_selection_wait(ad);   // the worker is done with it (its result stays to be judged)
+    if (!w->ad.Psi_buf.empty()) {
+      swap_metric_scratch(ad, w->ad);
+      return;
+    }
+  }
+  std::size_t phi = 0, vec = 0;
+  for (int node = 0; node < m.tree.nnodes(); ++node) {
+    const std::size_t h = m.tree.handle_num[node];
+    phi += 36 * h * h;
+    vec += 6 * h;
+  }
+  ad.Psi_buf.assign(phi, 0.0);
+  ad.p_buf.assign(vec, 0.0);
+  ad.eta.assign(m.tree.nnodes(), 0.0);
+}
+
+namespace {
+
 template <class T, class A>
 std::size_t heap_bytes(const std::vector<T, A>& v) { return v.capacity() * sizeof(T); }
 std::size_t heap_bytes(const Eigen::VectorXd& v) { return v.size() * sizeof(double); }
@@ -1181,6 +1223,7 @@ namespace {
 // worker and starts it. O(nq + nv) copies (memcpy) plus O(|region| + |loaded|).
 void post_selection(const Model& m, const State& st, AdaptiveData& ad, const AdaptiveOptions& opt) {
   AsyncSelector& w = *ad.worker.p;
+  if (w.ad.Psi_buf.empty()) swap_metric_scratch(ad, w.ad);   // lent for this selection
   w.st.q = st.q;
   w.st.qd = st.qd;
   w.st.tau = st.tau;
@@ -1434,6 +1477,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
       }
       ad.report.interval = ad.interval;
     }
+    if (ad.Psi_buf.empty()) swap_metric_scratch(ad, w->ad);   // taken back
     w->status.store(AsyncSelector::kIdle, std::memory_order_release);
   }
   bool post = false;

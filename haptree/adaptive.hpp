@@ -147,7 +147,8 @@ struct AdaptiveData {
   std::vector<char> inertia_form;      // (nnodes)
   std::vector<int> if_bodies;
   std::vector<char> if_top;            // (nbodies)
-  // Metric coefficients (§8), full-articulated, from the last selection.
+  // Metric coefficients (§8), full-articulated, from the last selection. Lent to the background
+  // worker while a selection is in flight (the worker's copy has none of its own).
   std::vector<double> Psi_buf, p_buf;
   std::vector<double> eta;             // (nnodes)
   // Incremental metric (AdaptiveOptions::incremental_metric): Φ, Ψ (Data's Φ layout) and W of
@@ -245,7 +246,9 @@ bool adaptive_selection_wait(AdaptiveData& ad);
 
 // Acceleration metric coefficients (§8) of every node from a completed full DCA bottom-up pass.
 void compute_metric_coefficients(const Model& model, const Data& data, AdaptiveData& ad);
-// Metric value A(node, f) = fᵀΨf + fᵀp + η for handle forces f (6h).
+// Metric value A(node, f) = fᵀΨf + fᵀp + η for handle forces f (6h). NaN while a background
+// selection is in flight (the worker holds Ψ, p, η; adaptive_selection_wait, then the next
+// adaptive_step or select_active_region takes them back).
 double metric_value(const Model& model, const AdaptiveData& ad, int node, const double* f);
 
 // Full pass + metric + greedy selection (§9); sets the active region, zeroes q̇ of inactive joints

@@ -682,6 +682,8 @@ TEST(AdaptiveMemory, WorkerHoldsOnlyTheSelectionsBuffers) {
     for (const char* unused : {"refine_", "scratch_hn", "ref_velocity", "pred_offset", "impulse.f_ext",
                                "scratch_h", "inertia_form", "if_top", "kin_q"})
       if (i.name.find(unused) != std::string::npos) EXPECT_EQ(i.bytes, 0u) << i.name;
+    for (const char* lent : {"worker.AdaptiveData.Psi_buf", "worker.AdaptiveData.p_buf", "worker.AdaptiveData.eta"})
+      if (i.name == lent) EXPECT_EQ(i.bytes, 0u) << i.name;   // no selection in flight: the lender holds them
   }
   EXPECT_GT(worker_items, 50);
   std::size_t phi = 0;
