@@ -5,7 +5,7 @@
 //   memq         one memq:// Bus; the echo runs in the bus's HandlerThread
 //   udpm         udpm://, two processes inside a private network namespace (needs root)
 // The "device" side publishes lcmt_device_state seq k and waits for lcmt_feedback echo_device_seq k.
-// Encoding/decoding is included (the real messages are sent). Figures in docs/benchmarks_bus.md.
+// Encoding/decoding is included (the real messages are sent). Figures in docs/performance.md.
 #include <sys/wait.h>
 #include <unistd.h>
 

@@ -103,7 +103,7 @@ void BM_ProteinLike(benchmark::State& bs) { run(bs, "protein_like", 857); }
 // "bodies" counts the pieces too (2n-2 bodies for n-1 DOF leaves + the spherical hub).
 void BM_StarSplit(benchmark::State& bs) { run(bs, "star", static_cast<int>(bs.range(0)), 4); }
 
-// The parallel passes on 2 threads (issue 13.4): wall time and process CPU time (both threads).
+// The parallel passes on 2 threads: wall time and process CPU time (both threads).
 void BM_Chain2T(benchmark::State& bs) { run(bs, "chain", static_cast<int>(bs.range(0)), 0, 2); }
 void BM_BinaryTree2T(benchmark::State& bs) {
   run(bs, "binary_tree", static_cast<int>(bs.range(0)), 0, 2);
@@ -116,7 +116,7 @@ double thread_cpu_us() {
   return ts.tv_sec * 1e6 + ts.tv_nsec * 1e-3;
 }
 
-// Parallel passes on p free cores, from measured pieces (issue 13.4). This 2-core machine is shared
+// Parallel passes on p free cores, from measured pieces. This 2-core machine is shared
 // by several processes, so a wall-clock speed-up of 2 threads measures the load, not the code.
 // Instead each piece of the schedule (haptree::parallel_cut for p threads) is timed on one thread
 // by its CPU clock: the serial part (kinematics, velocities), every task (its leaves' inertia terms,

@@ -40,7 +40,7 @@ struct CouplerOptions {
                                       // of the device point (the proxy); 0: the nearest body wherever it is
   double max_force_n = 3.0;           // clamp (device limit)
   double stale_after_s = 0.05;        // watchdog: snapshot/pose older than this is stale (measured default:
-                                      // docs/benchmarks_processes.md; 5 ms tripped 5-17 times/s on 2 cores)
+                                      // docs/performance.md; 5 ms tripped 5-17 times/s on 2 cores)
   double user_force_rate_hz = 1000;   // USER_FORCE publication rate
   uint64_t model_fingerprint = 0;     // expected model (--model-fingerprint); 0: lock onto the first one heard
   double max_device_position_m = 1.0; // a device position farther than this from the device origin (or

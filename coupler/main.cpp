@@ -84,7 +84,7 @@ int main(int argc, char** argv) {
   app.add_option("--max-force-n", o.max_force_n, "force clamp at the device, N (the user force sent to the server is clamped to 2 x this / --force-scale)")
       ->check(haptree::bus::positive(1000))->capture_default_str();
   app.add_option("--stale-after-s", o.stale_after_s, "watchdog: snapshot or device-pose age (s) that counts as stale; also the silence after which another "
-                 "server or device instance is taken as a restart (default measured: docs/benchmarks_processes.md)")
+                 "server or device instance is taken as a restart (default measured: docs/performance.md)")
       ->check(haptree::bus::positive(10))->capture_default_str();
   app.add_option("--user-force-rate-hz", o.user_force_rate_hz, "USER_FORCE publication rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-device-position-m", o.max_device_position_m,
@@ -111,7 +111,7 @@ int main(int argc, char** argv) {
                  "them at open) and check the gains against them too, over --device-model's; s (0: --device-model "
                  "only; none within the wait: a warning, and --device-model only)")
       ->check(CLI::Range(0.0, 600.0))->capture_default_str();
-  haptree::bus::RealtimeOptions rt;   // docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::RealtimeOptions rt;   // docs/performance.md, "Latency per transport"
   haptree::bus::add_realtime_options(app, rt,
                                      "with busy-wait pacing, iterate as soon as a new device pose arrives instead of "
                                      "at the next tick (pose-to-force latency; the rate stays --coupler-rate-hz)");

@@ -374,8 +374,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
     if (mirror_due) {
       // Mirror pairs the coupler actually used: the newest FEEDBACK with the device state it answers,
       // so every mirrored FEEDBACK can be replayed (replay_coupling) whatever the mirror rate. After the
-      // answer to this tick's pose: two udpm sends between a pose and its answer were the shm link's p99
-      // (docs/benchmarks.md, issue 15.1).
+      // answer to this tick's pose: two udpm sends between a pose and its answer were the shm link's p99.
       const lcmt_device_state& used = shm_states_[static_cast<size_t>(fb_shm_.echo_device_seq % kStateRing)];
       if (fb_shm_.seq > mirrored_feedback_seq_ && fb_shm_.echo_device_seq > 0 && used.seq == fb_shm_.echo_device_seq) {
         bus_.publish(ch_state_, used);

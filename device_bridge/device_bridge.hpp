@@ -1,5 +1,5 @@
 #pragma once
-// DeviceBridge: the paper's haptics loop as a class (STYLE.md §7.1), one per device. Runs a device from
+// DeviceBridge: the paper's haptics loop as a class, one per device. Runs a device from
 // the registry (scripted, virtual_hand, replay, or a plugged-in SDK) at its rate, publishes
 // DEVICE_STATE and applies the latest FEEDBACK. Link to the coupler: LCM, or same-host shared memory
 // (latest value) mirrored onto LCM at --mirror-rate-hz for lcm-logger.
@@ -93,7 +93,7 @@ class DeviceBridge {
   // FEEDBACK messages refused because another coupler instance (the one followed) is live.
   int64_t feedback_refused() const { return refused_.load(); }
   int64_t coupler_takeovers() const { return takeovers_.load(); }
-  // run()'s thread computes with flush-to-zero + denormals-are-zero (issue 13.3).
+  // run()'s thread computes with flush-to-zero + denormals-are-zero.
   bool ftz_daz() const { return ftz_daz_.load(); }
 
  private:

@@ -39,7 +39,7 @@ int main(int argc, char** argv) {
                                  "and exit (0; 1 if it cannot be opened or read). Force output stays off");
   app.add_option("--device-rate-hz", o.rate_hz, "device loop rate, Hz")->check(haptree::bus::positive(1e5))->capture_default_str();
   app.add_option("--max-force-n", o.max_force_n, "device force limit, N")->check(haptree::bus::positive(1000))->capture_default_str();
-  haptree::bus::RealtimeOptions rt;   // docs/benchmarks.md, "real-time haptic loop"
+  haptree::bus::RealtimeOptions rt;   // docs/performance.md, "Latency per transport"
   haptree::bus::add_realtime_options(app, rt,
                                      "after publishing a pose, poll shared-memory feedback until its answer arrives "
                                      "(then sleep to the next tick) instead of waiting for the next tick");

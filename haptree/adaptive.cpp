@@ -258,7 +258,7 @@ bool translating(const Model& m, int J) {
   return m.joint_type[J] == JointType::kPrismatic || m.joint_type[J] == JointType::kFree;
 }
 
-// World-frame views of a node's cached coefficients (ALGORITHMS §10.2: a node with no moved
+// World-frame views of a node's cached coefficients (docs/algorithms.md §10.2: a node with no moved
 // joint only rotates, with its reference body).
 struct MetricCache {
   const Model& m;
@@ -553,7 +553,7 @@ void build_caches(const Model& m, Data& d, AdaptiveData& ad) {
     for_each_body(t, F, stack, [&](int k) { ad.frontier_of_body[k] = F; });
   // r_k − r_ref from the local offsets d_k (ids ascending: a node's bodies are a connected
   // subtree whose smallest id is ref, so parent[k] is done first), never r_k − r_ref of two world
-  // positions, which lost ε·|r| at a far origin (issue 14).
+  // positions, which lost ε·|r| at a far origin.
   for (int k = 0; k < m.nbodies; ++k) {
     if (ad.frontier_of_body[k] < 0) continue;
     const int ref = ad.ref_body[ad.frontier_of_body[k]];
@@ -595,7 +595,7 @@ void build_caches(const Model& m, Data& d, AdaptiveData& ad) {
   }
 }
 
-// Inertia-form active nodes (ALGORITHMS §14.2) of the region in ad (the frontier's comp_ground
+// Inertia-form active nodes of the region in ad (the frontier's comp_ground
 // must be set). Entries of inertia_form and if_top are expected clear. O(|active|).
 void build_inertia_form(const Model& m, AdaptiveData& ad) {
   const auto& t = m.tree;

@@ -1,4 +1,4 @@
-// Adaptive (hybrid) articulated-body dynamics (ALGORITHMS §6, §8–§10; Redon et al.).
+// Adaptive (hybrid) articulated-body dynamics (docs/algorithms.md §6, §8–§10; Redon et al.).
 //
 // Only the joints of the *active region* — a rooted subtree of the assembly tree — move. Each child
 // of an active node that is not active is a *frontier* node: a rigid body (its whole subtree locked)
@@ -17,7 +17,7 @@
 // Selection (§9): a full-articulated pass computes the acceleration metric coefficients Ψ, p, η
 // of every node (§8), and a greedy top-down walk activates the nodes with the largest metric until
 // the neglected metric Σ_{inactive} q̈ᵀ A q̈ is ≤ ε (threshold mode) or the DOF budget is used.
-// When it runs (issue 13.1): when ε or the budget changes, and then — with reselect_every = 0, the
+// When it runs: when ε or the budget changes, and then — with reselect_every = 0, the
 // default — at an error-controlled interval: each selection first computes, exactly, the
 // neglected metric the replaced region has *now* (a check costing |active| top-down steps on the
 // full pass it needs anyway), measures how fast it grew since that region was selected, and sets
@@ -25,7 +25,7 @@
 // its bound (ε, or (1 + estimate_growth)× its value in budget mode). A steady scene therefore
 // reselects rarely (the interval grows ×4 per selection up to interval_max), a changing one often.
 // reselect_every > 0 keeps the fixed count.
-// A selection is cheap (incremental_metric, ALGORITHMS §10.2/§10.4): under V1 only the active
+// A selection is cheap (incremental_metric, docs/algorithms.md §10.2/§10.4): under V1 only the active
 // region's joints move between selections, so every other node keeps its configuration-only
 // coefficients Φ, W, Ψ (cached in its reference body's frame, rotated on use) and recomputes only
 // its bias terms b, β, p, η by matrix–vector recurrences; the nodes with a moved joint — at most
@@ -49,7 +49,7 @@ struct AdaptiveOptions {
   int interval_max = 1000;    // error-controlled: longest interval
   double estimate_growth = 1.0;      // budget mode: bound = (1 + this)× the selection's value
   double estimate_floor_rel = 1e-6;  // ... + this × the total metric (round-off level values)
-  // Selection cost (issue 13.1, ALGORITHMS §10.2/§10.4): a node whose subtree has no joint that
+  // Selection cost (docs/algorithms.md §10.2/§10.4): a node whose subtree has no joint that
   // moved since the last selection keeps its configuration-only coefficients Φ, W, Ψ (cached in its
   // reference body's frame, only rotated on use); only its bias terms b, β, p, η are recomputed,
   // with matrix–vector products. Nodes with a moved joint (the active region's) get the full
@@ -58,7 +58,7 @@ struct AdaptiveOptions {
   // Every this many selections the coefficients are recomputed from scratch (§10.4-A, the check
   // and reset of the incremental ones); 0: never, except when nothing is cached yet.
   int exact_refresh_every = 16;
-  // Background selection (ALGORITHMS §9, "selection off the step"): once a first region is in force,
+  // Background selection (docs/algorithms.md §10.5, "selection off the step"): once a first region is in force,
   // a due reselection is computed on a worker thread from a consistent copy of the state (q, q̇, τ
   // and the loaded bodies' f_ext at the step it is due), while the steps go on with the region in
   // force; the first adaptive_step after the worker is done installs the new region in
@@ -138,7 +138,7 @@ struct AdaptiveData {
   std::vector<Vec3> pred_offset;       // (nbodies) r_J − r_ref of J's predecessor's frontier node
   // Active fixed-joint cluster nodes assembled in inertia form, as the full pass does: a weld
   // joined by the mobility difference formula cancels ~(weld length/gyration radius)² of the
-  // digits (issue 14). Eligible: those whose inertia-form children are leaves or such nodes.
+  // digits. Eligible: those whose inertia-form children are leaves or such nodes.
   // if_bodies: their bodies, ascending, for the compensated cluster offsets; if_top: the first
   // body of each such region.
   std::vector<char> inertia_form;      // (nnodes)

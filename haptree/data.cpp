@@ -47,7 +47,7 @@ Data::Data(const Model& model) {
                      std::to_string(model.children[hub].size()) + " children: the assembly would "
                      "need " + std::to_string(phi * 8 >> 20) + " MiB of coefficients; split it into "
                      "rigid pieces with --max-children 4 (haptree-fd; BuildOptions::max_children "
-                     "in the API), exact, ALGORITHMS §4.4");
+                     "in the API), exact, docs/algorithms.md §4.4");
   }
   Phi_buf.assign(phi, 0.0);
   b_buf.assign(vec, 0.0);

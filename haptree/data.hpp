@@ -20,7 +20,7 @@ struct State {
 
 enum class NodeKind : std::uint8_t { kLeaf, kActive, kRigid };
 
-// Iterative refinement in forward_dynamics (Data::refine, issue 14.2).
+// Iterative refinement in forward_dynamics (Data::refine).
 enum class Refinement : std::uint8_t {
   kOff,        // one pass: 1.2–1.3× faster, 1e-12-level errors on trees and proteins
   kDouble,     // one refinement step, residual in double from the pass's kinematics (the default)
@@ -86,7 +86,7 @@ struct Data {
   std::vector<Vec6> cb;                // (ncluster_nodes) a_o with no handle forces (cMinv = ∂a_o/∂F_o)
   std::vector<std::uint8_t> cluster_live;   // (nnodes) assembled in inertia form in this pass
 
-  // Light-leaf form (dca.cpp, issue 14.2): a node joining a leaf body to the stiffer side of its
+  // Light-leaf form (dca.cpp): a node joining a leaf body to the stiffer side of its
   // joint is assembled from the leaf's inertia, not from its mobility. leaf_adr: slot of a node
   // with a (non-ground) leaf child, else −1; leaf_side: 0 mobility form, 1 P is the leaf, 2 Q is;
   // leaf_F: ∂f_J/∂f_L, the joint force on the leaf per force on its other handles (at r_J).
@@ -97,13 +97,13 @@ struct Data {
 
   Eigen::VectorXd qdd;          // (nv) output of forward_dynamics
 
-  // One step of iterative refinement in forward_dynamics (issue 14.2; kDouble by default): the
+  // One step of iterative refinement in forward_dynamics (kDouble by default): the
   // residual r = τ − ID(q, q̇, q̈) by inverse dynamics at the handle points, then δ = H⁻¹ r by the
   // bias half of the assembly (q̇ = 0, no gravity, no f_ext, τ = r; the factors Φ, W of the pass
   // reused) and a top-down, and q̈ += δ. The mobility-form assembly Φ_C = Φ_L − Φ_L W Φ_L is not
   // backward stable next to light bodies or between large subassemblies; inverse dynamics is, so
   // one step recovers the digits it loses (binary tree 1024: 1.2e-12 → 5e-16; bacteriorhodopsin
-  // 2.4e-12 → 2.8e-15) for 1.2–1.3× the plain pass (docs/benchmarks.md).
+  // 2.4e-12 → 2.8e-15) for 1.1–1.4× the plain pass (docs/performance.md).
   // kDouble computes r in double from the pass's poses: q̈ then solves the problem of the *rounded*
   // poses, whose own distance from the exact one is the model's conditioning times ε (chain 1024:
   // 6e-12, as Bullet and Simbody). kExtended computes r in long double from q (kinematics
@@ -125,7 +125,7 @@ struct Data {
   // kExtended's inverse dynamics (empty until set_refinement asks for it).
   InverseDynamicsScratch<long double> refine_x;
 
-  // Threads of forward_dynamics' passes and their schedule (set_dca_threads; issue 13.4). 1 (the
+  // Threads of forward_dynamics' passes and their schedule (set_dca_threads). 1 (the
   // default) runs everything on the calling thread.
   int dca_threads = 1;
   ParallelCut dca_cut;          // one task per root until set_dca_threads splits it

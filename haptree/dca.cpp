@@ -228,7 +228,7 @@ void dca_leaf(const Model& m, Data& d, int node) noexcept {
 
 namespace {
 
-// SIMD-friendly layout (issue 13.4): a 6-vector sits in the top of an 8-row column whose rows 6, 7
+// SIMD-friendly layout: a 6-vector sits in the top of an 8-row column whose rows 6, 7
 // are zero, so one column is one AVX-512 register (two AVX2, four SSE2 ones) and a product with a
 // 6×N matrix is N·6 broadcast multiply-adds over whole columns. A 6-row column fits no packet
 // (Eigen then falls back to 2-wide or scalar code; 5-row ones are always scalar).
@@ -262,7 +262,7 @@ bool constraint_inverse(const Eigen::Matrix<double, NC, NC>& A, const Pad<NC>& T
     // every term ≤ A_jj), so A_jj is its scale, not the trace: Tᵀ Φ̂ T mixes units (1/(kg m²),
     // 1/kg), and at a 1 km weld off a light body on a moving joint the trace (≈ 1e8, the far
     // point's translational mobility) dropped the heavy welded side's rotational pivot (≈ 1e-7,
-    // its own scale): O(1) errors, 1.5e3 × the bound (issue 14.1). A pivot kept by the old test
+    // its own scale): O(1) errors, 1.5e3 × the bound. A pivot kept by the old test
     // is kept by this one (A_jj ≤ trace): where none was dropped, the bits are unchanged.
     const double tol = 1e-13 * A(j, j);
     const bool drop = !(s > tol);
@@ -503,7 +503,7 @@ void assemble_blocks_general(const Model& m, Data& d, int node) {
 
 namespace {
 
-// ---- Light-leaf form (issue 14.2) -----------------------------------------------------------
+// ---- Light-leaf form -----------------------------------------------------------
 // Joining a leaf body L to a subassembly O across J by the mobility formula Φ_L − Φ_L W Φ_L
 // subtracts two mobilities of size 1/I_L to leave one of size ~1/I_O: next to a light body (the
 // Cα–H body, smallest principal inertia 1000× below its neighbours') it loses digits like
@@ -623,7 +623,7 @@ Eigen::Matrix<double, N, N> pivoted_inverse(Eigen::Matrix<double, N, N> A) {
 
 // The leaf-form kernel for nJ = NJ, nc = NC (Eigen::Dynamic for both: any joint). Writes R, Y, F
 // and the bias terms f_J0 and a_L0 (no handle forces). Fixed sizes for the revolute/prismatic case
-// are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x (benchmarks_dca.md).
+// are what make the form cheap: the dynamic-size blocks and LU cost it ~1.6x.
 template <int NJ, int NC>
 void leaf_form_kernel(const Mat6& K, const Vec6& p, const Mat6& Bh, const JointMat& Sd,
                       const JointMat& Td, const KMat<NJ, 1>& taup, const Vec6& bO, const Vec6& cp,
@@ -861,10 +861,10 @@ namespace {
 // and bias force p at its reference point o = r_{cluster_ref[node]}: a_o = M⁻¹(Σ_x X_xᵀ f_x + p),
 // X_x the motion shift from o to handle x. Joining two such nodes across a fixed joint adds M and
 // p; joining a one-handle side across a moving joint adds its ABA projection. No difference of
-// large mobilities is formed, so light pieces of a split hub do not cancel (ALGORITHMS §4.4,
+// large mobilities is formed, so light pieces of a split hub do not cancel (docs/algorithms.md §4.4,
 // §16.4). o is a body of the node near most of its mass, not the cluster's root: an inertia moved
 // across a long weld has a condition number ~ (length/radius of gyration)⁴, and its inverse lost
-// 1e-5 of q̈ at 10⁶ m (issue 14). Mobilities are shifted instead (no cancellation).
+// 1e-5 of q̈ at 10⁶ m. Mobilities are shifted instead (no cancellation).
 
 
 // r_a − r_b for two bodies of one cluster, from the compensated offsets (exact to O(ε|r_a − r_b|)).
@@ -1300,7 +1300,7 @@ int set_dca_threads(const Model& m, Data& d, int threads) {
   if (threads == 0) {
     // A free core: the 1-minute load average (this thread included) leaves at least one CPU idle.
     // On a loaded machine the second thread waits for a core at every barrier: 2 threads at load
-    // 20 on 2 CPUs took 5x the serial wall time (docs/benchmarks.md, issue 13.4).
+    // 20 on 2 CPUs took 5x the serial wall time.
     const int cpus = cpus_available();
     double load = 1e9;
     const bool free_core = getloadavg(&load, 1) == 1 && load <= cpus - 1;
@@ -1556,7 +1556,7 @@ double potential_energy(const Model& m, const Data& d) noexcept {
   return e;
 }
 
-// Hooks for adaptive.cpp (issue 13.1): the same steps as dca_bottom_up, split (kept apart from it
+// Hooks for adaptive.cpp: the same steps as dca_bottom_up, split (kept apart from it
 // so that the pass itself is unchanged).
 void dca_cluster_offsets(const Model& m, Data& d) noexcept { cluster_offsets(m, d); }
 

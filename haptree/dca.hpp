@@ -1,4 +1,4 @@
-// Divide-and-conquer articulated-body algorithm (ALGORITHMS §5–§7) in handle-point coordinates.
+// Divide-and-conquer articulated-body algorithm (docs/algorithms.md §5–§7) in handle-point coordinates.
 #pragma once
 
 #include "haptree/data.hpp"
@@ -53,7 +53,7 @@ void set_refinement(const Model& model, Data& data, Refinement r);
 // again to re-decide). Allocates the schedule; not per step. Returns the threads used.
 // Off by default because the embedded session's sim shares its 2 cores with the coupler and the
 // device bridge: a second DCA thread would take the coupler's core.
-constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (docs/benchmarks.md, issue 13.4)
+constexpr int kDcaParallelMinNodes = 1023;   // ≥ 512 bodies (docs/performance.md)
 int set_dca_threads(const Model& model, Data& data, int threads);
 
 // Joint motion subspace S (6×n), constraint basis T (6×(6−n)) and D (6×n) at the handle point, world

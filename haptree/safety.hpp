@@ -1,5 +1,5 @@
 /// @file
-/// Safety layer between the coupling and a device (DESIGN.md "Safety"): NaN/Inf guard, force clamp,
+/// Safety layer between the coupling and a device (docs/security.md): NaN/Inf guard, force clamp,
 /// staleness watchdog with linear ramps, and a Ryu–Hannaford passivity observer reported as telemetry.
 /// Eigen only; everything is noexcept and allocation-free (it runs inside the 10 kHz coupler loop).
 /// Times are seconds of whatever clock the caller uses (simulated time in tests, steady clock in the coupler).

@@ -443,7 +443,7 @@ void SimServer::publish_scene_chunks() {
   if (scene_chunk_ >= chunks) scene_chunk_ = -1;
 }
 
-// Every field set (issue 11, defect 6): counters from SimServerCounters, latencies from the last step
+// Every field set: counters from SimServerCounters, latencies from the last step
 // and the slowest step of the period.
 // Once per stats window: the real-time factor, and one plain-words warning when the requested rate is not
 // kept for two windows in a row (the first window, with the start-up, does not count).
@@ -497,7 +497,7 @@ void SimServer::publish_stats(double rate_hz) {
 }
 
 int SimServer::run(const std::atomic<bool>& stop) {
-  // FTZ/DAZ in the stepping thread (issue 13.3): subnormal operands cost Intel CPUs a microcode assist
+  // FTZ/DAZ in the stepping thread: subnormal operands cost Intel CPUs a microcode assist
   // each; under FTZ the DCA pass makes none (snapshots are flushed as well, make_coupling_snapshot).
   const ScopedFlushDenormals ftz;
   c_.ftz_daz.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);

@@ -1,7 +1,7 @@
 #pragma once
 
 #include <limits>
-// SimServer: the paper's simulation loop as a class (STYLE.md §7.1). Loads a scene, steps adaptive DCA
+// SimServer: the paper's simulation loop as a class. Loads a scene, steps adaptive DCA
 // dynamics, applies the latest user force of every user, and after every step publishes one coupling
 // snapshot per user with an active grab (HAPTREE_COEFFS_<user>), the scene state at a display rate and
 // process stats at 1 Hz. No math here: the formulas live in haptree/.
@@ -59,7 +59,7 @@ struct SimServerOptions {
   // default follows from the coupler's defaults: it clamps f_u to 2 x max_force_n / force_scale =
   // 2 x 3 N / 0.5 N per unit = 12 scene force units; the launcher passes the value of its own options.
   double max_user_force = 12.0;
-  // ---- trajectory (issue 12): atoms (molecules) or body origins to a .dcd or .pdb file ----
+  // ---- trajectory: atoms (molecules) or body origins to a .dcd or .pdb file ----
   std::string trajectory;              // "" = none
   int trajectory_every_steps = 100;
   double trajectory_every_time = 0;    // > 0: a frame every this much scene time instead
@@ -106,7 +106,7 @@ class SimServer {
   void publish_snapshots();
   void publish_scene_state(double step_ms);
   void publish_stats(double rate_hz);
-  // Real-time accounting of the last stats window (issue 11, defect 12).
+  // Real-time accounting of the last stats window.
   void check_rate(double steps_per_s, double mean_step_ms, double max_step_ms);
   double window_step_ms_sum_ = 0, window_step_ms_max_ = 0;
   int slow_windows_ = 0;

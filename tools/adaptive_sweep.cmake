@@ -1,5 +1,5 @@
 # adaptive_sweep: run time against error of the adaptive dynamics (budget k / threshold eps sweep vs
-# full DCA), CSV + Markdown table. Results, plots and the command: docs/benchmarks_adaptive.md.
+# full DCA), CSV + Markdown table. Results, plots and the command: docs/performance.md.
 find_package(CLI11 QUIET)
 if(CLI11_FOUND)
   add_executable(adaptive_sweep ${CMAKE_CURRENT_LIST_DIR}/adaptive_sweep.cpp)

@@ -7,7 +7,7 @@
 // speed-up against full DCA, the neglected metric (the error estimate), the trajectory deviation from
 // the full run at the end (RMS over q, max body-origin distance), active DOFs, nodes visited and the
 // energy difference against the full run (the V1 velocity policy — inactive joints have q̇ = 0 —
-// removes kinetic energy when a moving joint is deactivated; ALGORITHMS §10.3).
+// removes kinetic energy when a moving joint is deactivated; docs/algorithms.md §10.3).
 //
 //   adaptive_sweep --scenes chain4096,protein_like,bacteriorhodopsin,ala20 --csv sweep.csv
 //   adaptive_sweep --smoke      (small and fast, for CTest)

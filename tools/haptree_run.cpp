@@ -139,7 +139,8 @@ int main(int argc, char** argv) {
   app.add_option("--device-kind", device_kind,
                  "user 0's device instead of the scripted pull: a device_bridge kind (" +
                      fmt::format("{}", fmt::join(haptree::device::device_names(), " | ")) +
-                     ", or one a plug-in registers); the other users keep the script");
+                     ", or one a plug-in registers); the other users keep the script unless the session file's\n"
+                     "[user.N] names their device");
   app.add_option("--device-option", device_options,
                  "option of --device-kind's device, key=value (repeat for several; see docs/devices.md)")
       ->check(CLI::Validator(
@@ -205,6 +206,21 @@ int main(int argc, char** argv) {
   const int scripted_users = users;
   if (vl.port > 0) users = std::max(users, vl.users);   // couplers + browser devices for every page user
   so.users = users;
+  // Each user's own device: user 0's from the command line (or [user.0]), the others' from [user.N].
+  std::vector<haptree::bus::UserDevice> user_devices(static_cast<size_t>(users));
+  user_devices[0] = {device_kind, device_options};
+  for (const auto& [u, d] : cli.file_user_devices()) {
+    if (u >= users) {
+      spdlog::critical("haptree_run: the session file's [user.{}] names a device, but the session has {} user(s) "
+                       "(--users)", u, users);
+      return 2;
+    }
+    if (d.kind.empty()) {
+      spdlog::critical("haptree_run: the session file's [user.{}] has device-option but no device-kind", u);
+      return 2;
+    }
+    user_devices[static_cast<size_t>(u)] = d;
+  }
   // The server's limit on incoming user forces: the coupler's own clamp (2 x max_force_n / force_scale).
   {
     haptree::CouplerOptions co;
@@ -249,10 +265,9 @@ int main(int argc, char** argv) {
     se.viewer_no_token = vl.no_token;
     se.viewer_mesh_paths = vl.mesh_paths;
     se.scripted_users = vl.port > 0 ? scripted_users : -1;
-    se.device_kind = device_kind;
+    se.user_devices = user_devices;
     se.session_key_file = session_key_file;
     se.json = json;
-    se.device_options = device_options;
     se.device_model = limits.model;
     se.clamp_gains = limits.clamp;
     se.device_damping_n_s_per_m = limits.physical_damping_n_s_per_m;
@@ -286,10 +301,10 @@ int main(int argc, char** argv) {
       bo.options["pull_distance_m"] = std::to_string(pull_distance_m);
       bo.options["pull_direction"] = u % 2 == 0 ? "1,0,0" : "0,1,0";
       bo.options["hold_s"] = std::to_string(duration_s > 0 ? std::max(0.5, duration_s - 3.0) : 1e9);
-      if (u == 0 && !device_kind.empty()) {   // the user's own device instead of the script
-        bo.kind = device_kind;
+      if (const auto& ud = user_devices[static_cast<size_t>(u)]; !ud.kind.empty()) {   // own device, not the script
+        bo.kind = ud.kind;
         bo.options.clear();
-        for (const auto& kv : device_options) {
+        for (const auto& kv : ud.options) {
           const auto eq = kv.find('=');
           bo.options[kv.substr(0, eq)] = kv.substr(eq + 1);
         }
@@ -315,7 +330,7 @@ int main(int argc, char** argv) {
       co.model_fingerprint = model.fingerprint;   // refuse any other model on the bus
       co.stale_after_s = stale_after_s;
       // The user's own device reported its limits at open: the gains are checked against them too.
-      if (u == 0 && !device_kind.empty()) {
+      if (!user_devices[static_cast<size_t>(u)].kind.empty()) {
         const haptree::device::DeviceDescription d = bridges.back()->description();
         if (!haptree::device::enforce_device_limits(limits, co.stiffness, co.damping, co.position_scale, co.force_scale,
                                                     co.max_force_n, co.rate_hz, "haptree_run", &d))

@@ -360,7 +360,9 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              "--offset", fmt::format("{},{},{}", o.x(), o.y(), o.z()), "--max-device-position-m",
                              fmt_d(reaches[static_cast<size_t>(u)])});
       if (shm) cpl.push_back("--shm");
-      if (u == 0 && !se.device_kind.empty()) {   // the gains checked again against the device's own limits
+      const bool own_device =
+          static_cast<size_t>(u) < se.user_devices.size() && !se.user_devices[static_cast<size_t>(u)].kind.empty();
+      if (own_device) {   // the gains checked again against the limits the device reports
         cpl.insert(cpl.end(), {"--device-limits-wait-s", "10", "--device-model", se.device_model, "--sim-dt-s",
                                fmt_d(se.sim_dt_s)});
         if (se.clamp_gains) cpl.push_back("--clamp-gains");
@@ -375,12 +377,17 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
     for (int u = 0; u < se.users; ++u) {
       std::vector<std::string> dev = {exe_dev};
       dev.insert(dev.end(), common.begin(), common.end());
-      if (u == 0 && !se.device_kind.empty()) {   // the user's own device instead of the script
-        dev.insert(dev.end(), {"--device", "0", "--device-kind", se.device_kind, "--device-rate-hz", "1000", "--max-force-n",
-                               fmt_d(se.max_force_n)});
-        for (const auto& kv : se.device_options) dev.insert(dev.end(), {"--device-option", kv});
+      const bus::UserDevice* own =
+          static_cast<size_t>(u) < se.user_devices.size() && !se.user_devices[static_cast<size_t>(u)].kind.empty()
+              ? &se.user_devices[static_cast<size_t>(u)]
+              : nullptr;
+      if (own) {   // the user's own device instead of the script
+        dev.insert(dev.end(), {"--device", std::to_string(u), "--device-kind", own->kind, "--device-rate-hz", "1000",
+                               "--max-force-n", fmt_d(se.max_force_n)});
+        for (const auto& kv : own->options) dev.insert(dev.end(), {"--device-option", kv});
         if (shm) dev.insert(dev.end(), {"--shm", "--mirror-rate-hz", fmt_d(se.mirror_rate_hz)});
-        children.push_back({"device_bridge_0", log_dir + "/device_bridge_0.log"});
+        const std::string du = "device_bridge_" + std::to_string(u);
+        children.push_back({du, log_dir + "/" + du + ".log"});
         children.back().pid = spawn(dev, children.back().log);
         continue;
       }
@@ -406,7 +413,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       // The token goes to the viewer in a file (a command line is visible to every user in ps).
       std::string token, token_file = se.viewer_token_file;
       if (se.viewer_no_token) {
-        vw.push_back("--no-token");
+        vw.push_back("--viewer-no-token");
       } else {
         if (token_file.empty()) {
           token = random_viewer_token();
@@ -418,10 +425,10 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
         } else {
           token = read_viewer_token_file(token_file);
         }
-        vw.insert(vw.end(), {"--token-file", token_file});
+        vw.insert(vw.end(), {"--viewer-token-file", token_file});
       }
-      if (!se.viewer_watch_token_file.empty()) vw.insert(vw.end(), {"--watch-token-file", se.viewer_watch_token_file});
-      if (!se.viewer_tls_cert.empty()) vw.insert(vw.end(), {"--tls-cert", se.viewer_tls_cert, "--tls-key", se.viewer_tls_key});
+      if (!se.viewer_watch_token_file.empty()) vw.insert(vw.end(), {"--viewer-watch-token-file", se.viewer_watch_token_file});
+      if (!se.viewer_tls_cert.empty()) vw.insert(vw.end(), {"--viewer-tls-cert", se.viewer_tls_cert, "--viewer-tls-key", se.viewer_tls_key});
       children.push_back({"viewer", log_dir + "/viewer.log"});
       children.back().pid = spawn(vw, children.back().log);
       std::fprintf(se.json ? stderr : stdout, "viewer: open %s://%s:%d/%s\n", se.viewer_tls_cert.empty() ? "http" : "https",

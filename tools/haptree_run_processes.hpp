@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "haptree/bus/session_config.hpp"
 #include "sim_server/sim_server.hpp"
 
 namespace haptree::tools {
@@ -32,18 +33,17 @@ struct SessionOptions {
   // takes over; the others are browser-only (idle until a tab grabs). -1 = all scripted, no browser.
   int viewer_port = 0;
   std::string viewer_bind = "127.0.0.1";
-  // Viewer access (viewer --token-file etc.): "" token file = a random token the launcher writes into
+  // Viewer access (viewer --viewer-token-file etc.): "" token file = a random token the launcher writes into
   // the log folder (mode 0600) for the viewer and prints in the URL.
   std::string viewer_token_file, viewer_watch_token_file, viewer_tls_cert, viewer_tls_key;
   bool viewer_no_token = false;
   std::vector<std::string> viewer_mesh_paths;
   int scripted_users = -1;
-  // User 0's device: "" = the scripted pull (or the page's browser device); otherwise a registry kind
-  // (device_bridge --device-kind) with these key=value options instead of the script's.
-  std::string device_kind;
-  std::vector<std::string> device_options;
-  // The gain check's options (--device-model, --clamp-gains, ...): with device_kind, user 0's coupler
-  // runs the check again against the limits its device_bridge reports at open.
+  // Each user's device (one per user): kind "" = the scripted pull (or the page's browser device);
+  // otherwise a registry kind (device_bridge --device-kind) with its key=value options.
+  std::vector<bus::UserDevice> user_devices;
+  // The gain check's options (--device-model, --clamp-gains, ...): the coupler of each user with an own
+  // device runs the check again against the limits its device_bridge reports at open.
   std::string device_model = "simulated";
   bool clamp_gains = false;
   double device_damping_n_s_per_m = std::numeric_limits<double>::quiet_NaN();   // NaN: the table's

@@ -42,12 +42,13 @@ int main(int argc, char** argv) {
   app.add_option("--device", o.device, "device id (default: the one in the logged coupler settings)");
   // The session's coupler settings come from the log (HAPTREE_COUPLER_SETTINGS_<user>); these override.
   std::vector<CLI::Option*> overrides = {
-      app.add_option("--stiffness", o.stiffness, "k_s of the session"),
-      app.add_option("--damping", o.damping, "b_s of the session"),
-      app.add_option("--position-scale", o.position_scale, "scene length per device metre"),
+      app.add_option("--stiffness", o.stiffness, "k_s of the session, scene force per scene length"),
+      app.add_option("--damping", o.damping, "b_s of the session, scene force per scene velocity"),
+      app.add_option("--position-scale", o.position_scale, "scene length units per device metre"),
       app.add_option("--force-scale", o.force_scale, "N per scene force unit"),
-      app.add_option("--offset", offset, "scene position of the device origin")->expected(3),
-      app.add_option("--max-force-n", o.max_force_n, "force clamp of the session")};
+      app.add_option("--offset", offset, "X,Y,Z scene position of the device origin, scene length units")
+          ->delimiter(',')->expected(3),
+      app.add_option("--max-force-n", o.max_force_n, "force clamp of the session, N")};
   app.add_option("--tolerance", tolerance, "max allowed deviation, N")->capture_default_str();
   app.add_option("--channel-suffix", suffix, "channel suffix of the session");
   app.add_option("--start-s", start_s, "replay from this time, seconds after the log's first event")

@@ -6,7 +6,7 @@
 //            steps at several dt, halving dt below the list until a run survives --steps steps;
 //   far      q̈ of models placed 10^3 … 10^15 m from the origin against the same model at the origin
 //            (and what the long-double oracle does there);
-//   welds    the 127-joint tree mounted 10^3/10^6 m off a massive root link, then random models (every joint type, fixed roots, chains of welds, welded massive links,
+//   welds    a 127-joint tree mounted 10^3/10^6 m off a massive root link, then random models (every joint type, fixed roots, chains of welds, welded massive links,
 //            welds up to 1 km from their parent's frame) translated by 10^3/10^6 m and rotated;
 //   light    light bodies (smallest principal inertia / r) between normal ones: error vs bound;
 //   ratio    mass ratio 10^-k … 10^k between neighbouring links: error vs the long-double oracle;
@@ -237,7 +237,7 @@ void section_far(double tol) {
 // inertia, chains of welds, welded massive links, welds far from their parent's frame; each model
 // translated by 10³ and 10⁶ m and rotated, against the model at the origin and the oracle.
 void section_welds(int models) {
-  std::printf("\n## Welds and far mounts\n\n### The issue's tree: 127 joints (≈ 10 %% fixed) mounted "
+  std::printf("\n## Welds and far mounts\n\n### A 127-joint tree (≈ 10 %% fixed) mounted "
               "D off a 1000 kg root link fixed to the ground, against the same tree mounted 0.3 m off it\n\n");
   std::printf("| mount D [m] | vs mounted 0.3 m | vs oracle | err/B | κ(H) | singular pivots |\n"
               "|---|---|---|---|---|---|\n");
@@ -314,7 +314,7 @@ void section_welds(int models) {
 // smallest principal moment / r and its mass / √r; error vs the oracle and vs the bound.
 void section_light() {
   std::printf("\n## Light bodies: every third link of a 32-link chain with its smallest principal inertia / r\n\n");
-  std::printf("B = 10·n·ε·κ(H)·cancel (tests/support/oracle.hpp); the issue's target is 1e-12 "
+  std::printf("B = 10·n·ε·κ(H)·cancel (tests/support/oracle.hpp); the target is 1e-12 "
               "(NearSingular.LightBodiesBetweenNormalLinks asserts min(1e-12, B) for r ≤ 1e4).\n\n");
   std::printf("| r | κ(H) | error vs oracle | err / B | singular pivots |\n|---|---|---|---|---|\n");
   for (double r : {1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6}) {

@@ -14,7 +14,14 @@ int main(int argc, char** argv) {
                "HUD; a tab's mouse drives the `browser` device of a free user (device_bridge --device-kind browser).\n"
                "Works beside any session: embedded, --processes, across hosts, or an lcm-logplayer replay."};
   haptree::bus::ProgramCli cli(app, "viewer",
-                               {{"--bind", "--viewer-bind"}, {"--port", "--viewer-port"}, {"--users", "--viewer-users"}});
+                               {{"--bind", "--viewer-bind"},
+                                {"--port", "--viewer-port"},
+                                {"--users", "--viewer-users"},
+                                {"--token-file", "--viewer-token-file"},
+                                {"--watch-token-file", "--viewer-watch-token-file"},
+                                {"--no-token", "--viewer-no-token"},
+                                {"--tls-cert", "--viewer-tls-cert"},
+                                {"--tls-key", "--viewer-tls-key"}});
   haptree::ViewerOptions o;
   haptree::bus::BusOptions b;
   haptree::bus::add_bus_options(app, b, /*shm_link=*/false, /*mirror=*/false);
@@ -31,15 +38,15 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 8))->capture_default_str();
   app.add_option("--max-fps", o.max_fps, "frames sent to each tab, per second")->check(CLI::Range(1.0, 240.0))
       ->capture_default_str();
-  app.add_option("--token-file", o.token_file,
+  app.add_option("--viewer-token-file", o.token_file,
                  "file whose first line is the token that may pull (default: a random token, printed in the URL)")
       ->check(CLI::ExistingFile);
-  app.add_option("--watch-token-file", o.watch_token_file, "file whose first line is a watch-only token (may not pull)")
+  app.add_option("--viewer-watch-token-file", o.watch_token_file, "file whose first line is a watch-only token (may not pull)")
       ->check(CLI::ExistingFile);
-  app.add_flag("--no-token", o.no_token, "serve without a token (only with a loopback --bind: anyone on this machine can pull)");
-  app.add_option("--tls-cert", o.tls_cert, "PEM certificate (chain): serve https:// and wss:// (with --tls-key)")
+  app.add_flag("--viewer-no-token", o.no_token, "serve without a token (only with a loopback --viewer-bind: anyone on this machine can pull)");
+  app.add_option("--viewer-tls-cert", o.tls_cert, "PEM certificate (chain): serve https:// and wss:// (with --viewer-tls-key)")
       ->check(CLI::ExistingFile);
-  app.add_option("--tls-key", o.tls_key, "PEM private key of --tls-cert")->check(CLI::ExistingFile);
+  app.add_option("--viewer-tls-key", o.tls_key, "PEM private key of --viewer-tls-cert")->check(CLI::ExistingFile);
   if (const int rc = cli.parse(argc, argv); rc >= 0) return rc;
   o.channel_suffix = b.channel_suffix;
   std::atomic<bool>& g_stop = haptree::bus::install_stop_signals();

@@ -494,12 +494,12 @@ void Viewer::Impl::setup_access() {
   if (sodium_init() < 0) throw std::runtime_error("viewer: libsodium failed to initialise");
   asio::error_code aec;
   const asio::ip::address addr = asio::ip::make_address(opt.bind, aec);
-  if (aec) throw std::runtime_error("viewer: --bind '" + opt.bind + "' is not an IP address");
+  if (aec) throw std::runtime_error("viewer: --viewer-bind '" + opt.bind + "' is not an IP address");
   open_access = opt.no_token;
   if (open_access && !addr.is_loopback())
-    throw std::runtime_error("viewer: binding " + opt.bind + " (off this machine) needs a token: drop the no-token option");
+    throw std::runtime_error("viewer: binding " + opt.bind + " (off this machine) needs a token: drop --viewer-no-token");
   if (open_access && !(opt.token.empty() && opt.token_file.empty() && opt.watch_token_file.empty()))
-    throw std::runtime_error("viewer: no-token together with a token or token file");
+    throw std::runtime_error("viewer: --viewer-no-token together with a token or token file");
   if (!open_access) {
     pull_token = !opt.token.empty() ? opt.token
                  : !opt.token_file.empty() ? read_viewer_token_file(opt.token_file) : random_viewer_token();

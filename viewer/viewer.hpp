@@ -1,5 +1,5 @@
 #pragma once
-// Viewer: the session seen in a web browser, the fourth thin process (STYLE.md §7.1).
+// Viewer: the session seen in a web browser, the fourth thin process.
 // Subscribes to the session's channels (scene state, user forces, device states, feedback, stats),
 // loads the scene once to know where every atom (or body) sits on its body, and serves on one port
 // (127.0.0.1 unless told otherwise; http, or https with a certificate), to holders of a token only, the

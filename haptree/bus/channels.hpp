@@ -1,4 +1,4 @@
-// Channel names of the haptree bus (DESIGN.md "What flows where"). Uppercase, with the device/user id.
+// Channel names of the haptree bus (docs/processes.md). Uppercase, with the device/user id.
 // LCM channel names are at most 63 characters; every function here throws std::invalid_argument beyond.
 #pragma once
 

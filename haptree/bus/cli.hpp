@@ -1,4 +1,4 @@
-// Command-line options shared by the processes (STYLE.md §7.9). Header-only: the process links CLI11.
+// Command-line options shared by the processes. Header-only: the process links CLI11.
 //   BusOptions bus_opts; add_bus_options(app, bus_opts);
 #pragma once
 

@@ -5,7 +5,8 @@
 //   - the keys before the first section, shared by every program (each takes the ones it has);
 //   - its own section, [sim_server], [coupler], [device_bridge], [viewer], [imd_bridge] or [haptree_run];
 //   - for the programs of one user (coupler --user N, device_bridge --device N), the section [user.N]
-//     (haptree_run takes device-kind and device-option from [user.0]: user 0's device).
+//     (haptree_run takes device-kind and device-option from every [user.N]: user N's device; the command
+//     line's --device-kind/--device-option override [user.0]'s).
 // A key is an option's long name without the dashes (`sim-rate-hz = 1000`; `_` may stand for `-`).
 // The command line overrides the file; [user.N] overrides the program's section, which overrides the
 // shared keys. A key that no program knows, a key in a program's section that this program does not
@@ -61,8 +62,8 @@ inline const std::map<std::string, std::set<std::string>>& session_programs() {
         "sched-fifo", "mlockall", "cpu-affinity", "timer-slack-ns", "busy-poll"}},
       {"viewer",
        {"lcm-url", "channel-suffix", "session-key-file", "viewer-bind", "viewer-port", "web-dir", "scene", "n",
-        "urdf", "mesh-path", "viewer-users", "max-fps", "token-file", "watch-token-file", "no-token", "tls-cert",
-        "tls-key"}},
+        "urdf", "mesh-path", "viewer-users", "max-fps", "viewer-token-file", "viewer-watch-token-file", "viewer-no-token",
+        "viewer-tls-cert", "viewer-tls-key"}},
       {"imd_bridge",
        {"lcm-url", "channel-suffix", "session-key-file", "scene", "imd-port", "imd-bind", "imd-version",
         "imd-user", "imd-every-steps", "max-user-force", "user-force-rate-hz", "imd-go-timeout-s",
@@ -103,6 +104,13 @@ inline SceneDefaults scene_defaults(const std::string& scene, const std::string&
   if (!urdf.empty() || procedural) return {};
   return {true, 0.0005, 1.0, 200.0};
 }
+
+// A user's device as a session file's [user.N] gives it to the launcher, which runs every user's
+// device_bridge itself.
+struct UserDevice {
+  std::string kind;
+  std::vector<std::string> options;   // key=value
+};
 
 namespace detail {
 
@@ -170,8 +178,10 @@ inline std::string join(const std::vector<std::string>& v, const char* sep) {
 class SessionConfig : public CLI::ConfigTOML {
  public:
   // user_option: the option whose value picks the [user.N] section ("user", "device"), "" for none.
-  SessionConfig(const CLI::App* app, std::string program, std::string user_option)
-      : app_(app), program_(std::move(program)), user_option_(std::move(user_option)) {}
+  // user_devices: where the launcher's [user.N] devices (N >= 1) go; may be null for other programs.
+  SessionConfig(const CLI::App* app, std::string program, std::string user_option,
+                std::map<int, UserDevice>* user_devices = nullptr)
+      : app_(app), program_(std::move(program)), user_option_(std::move(user_option)), user_devices_(user_devices) {}
 
   std::vector<CLI::ConfigItem> from_config(std::istream& input) const override {
     const std::string text((std::istreambuf_iterator<char>(input)), std::istreambuf_iterator<char>());
@@ -208,8 +218,20 @@ class SessionConfig : public CLI::ConfigTOML {
         const long id = std::strtol(item.parents[1].c_str(), &end, 10);
         if (end == item.parents[1].c_str() || *end != '\0' || id < 0)
           throw CLI::ConfigError(where(item) + ": [user." + item.parents[1] + "]: a user section is [user.N], N >= 0");
+        if (program_ == "haptree_run") {
+          if (key != "device-kind" && key != "device-option") continue;
+          if (id != 0) {   // the command line names user 0's device only: the others' come from here
+            if (user_devices_) {
+              UserDevice& d = (*user_devices_)[static_cast<int>(id)];
+              if (key == "device-kind")
+                d.kind = item.inputs.empty() ? std::string() : item.inputs.front();
+              else
+                d.options.insert(d.options.end(), item.inputs.begin(), item.inputs.end());
+            }
+            continue;
+          }
+        }
         if (user < 0 || id != user || !has(key)) continue;   // another user's, or another program's
-        if (program_ == "haptree_run" && key != "device-kind" && key != "device-option") continue;
         item.parents.clear();
         item.name = key;
         user_items.push_back(std::move(item));
@@ -261,6 +283,7 @@ class SessionConfig : public CLI::ConfigTOML {
   }
   const CLI::App* app_;
   std::string program_, user_option_;
+  std::map<int, UserDevice>* user_devices_;
 };
 
 // Writes the effective settings of `app` as a session file section [program]: every option with its
@@ -353,7 +376,7 @@ class ProgramCli {
                         "; the command line overrides it")
         ->type_name("FILE")
         ->group("Session file");
-    app_.config_formatter(std::make_shared<SessionConfig>(&app_, program_, std::move(user_option)));
+    app_.config_formatter(std::make_shared<SessionConfig>(&app_, program_, std::move(user_option), &user_devices_));
     app_.allow_config_extras(CLI::config_extras_mode::error);
     app_.add_flag("--print-config", print_config_,
                   "write the effective settings as a session file section [" + program_ + "] and exit")
@@ -381,6 +404,9 @@ class ProgramCli {
     return -1;
   }
 
+  // The launcher's users N >= 1 whose [user.N] section names a device (empty for other programs).
+  const std::map<int, UserDevice>& file_user_devices() const { return user_devices_; }
+
  private:
   std::string rewrite(const std::string& arg) const {
     for (const auto& [old_name, new_name] : renamed_) {
@@ -396,6 +422,7 @@ class ProgramCli {
   std::string program_;
   std::vector<std::pair<std::string, std::string>> renamed_;
   bool print_config_ = false;
+  std::map<int, UserDevice> user_devices_;
 };
 
 }  // namespace haptree::bus

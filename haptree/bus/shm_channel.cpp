@@ -58,7 +58,7 @@ namespace {
 
 constexpr int64_t kLivenessCheckNs = 5'000'000;   // a reader re-checks its writer's pid every 5 ms (kill 0)
 // ... and the pid's start time (pid reuse, zombie) every second: reading /proc/PID/stat took 68 µs median,
-// 146 µs p99 on the 2-core host, inside a pose's path to its force every 5 ms (docs/benchmarks.md, 15.1).
+// 146 µs p99 on the 2-core host, inside a pose's path to its force every 5 ms.
 constexpr int64_t kStartTimeCheckNs = 1'000'000'000;
 constexpr int64_t kReopenEveryNs = 20'000'000;    // and looks for a (new) segment every 20 ms when it has none
 constexpr int64_t kYoungSegmentNs = 5'000'000'000;

@@ -1,4 +1,4 @@
-// The mouse in a web page as a haptic device (issue 12): the viewer turns the pointer on the page into
+// The mouse in a web page as a haptic device: the viewer turns the pointer on the page into
 // lcmt_pointer messages (device metres) on HAPTREE_POINTER_<device>; this device reads the newest one
 // each tick, so the pointer goes through the same coupler, clamp and watchdog as any device.
 // Safety: a pointer message with a non-finite or absurd position is dropped (the device holds its last

@@ -1,4 +1,4 @@
-// Device interface (STYLE.md §6): a DeviceSpec published as data (after CHAI3D's cHapticDeviceInfo), and an
+// Device interface: a DeviceSpec published as data (after CHAI3D's cHapticDeviceInfo), and an
 // open/read/write/close cycle returning a status with a reason (after ros2_control). read/write are the
 // haptic loop's hot path: noexcept, no allocation.
 #pragma once

@@ -12,112 +12,14 @@ browser only), opens two tabs (two users), and checks:
   * closing tab B while it pulls releases user 1: its force in the status lines goes back to exactly 0.
 Exit 0 on success; prints what failed otherwise."""
 import os
-import re
-import signal
-import socket
-import subprocess
 import sys
-import threading
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cdp  # noqa: E402
+from session import Checks, Launcher, ca_atoms, drag, ds, free_port, wait_for  # noqa: E402
 
 MAX_FORCE_N = 3.0
-
-
-def free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
-
-
-class Launcher:
-    """haptree_run with its stdout parsed: status lines give per-user |f| (coupler counters)."""
-    LINE = re.compile(r"user (\d+): +([\d.]+) Hz, \|f\| ([\d.]+) N")
-
-    def __init__(self, exe, port, processes, log_path):
-        args = [exe, "--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200",
-                "--users", "1", "--viewer-users", "2", "--viewer-port", str(port), "--duration-s", "300"]
-        if processes:
-            args.append("--processes")
-        self.log = open(log_path, "w")
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self.lines = []
-        self.force = {}          # user -> list of (time, |f|)
-        self.url_seen = threading.Event()
-        self.url = None
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self):
-        for line in self.proc.stdout:
-            self.log.write(line)
-            self.log.flush()
-            self.lines.append(line)
-            if line.startswith("viewer: open http://"):
-                self.url = line.split()[2]   # http://127.0.0.1:PORT/?token=...
-                self.url_seen.set()
-            if line.startswith("t "):
-                for m in self.LINE.finditer(line):
-                    self.force.setdefault(int(m.group(1)), []).append((time.time(), float(m.group(3))))
-
-    def forces_since(self, user, t0):
-        return [f for (t, f) in self.force.get(user, []) if t >= t0]
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return -9
-
-
-def wait_for(what, fn, timeout):
-    t_end = time.time() + timeout
-    while time.time() < t_end:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.25)
-    raise AssertionError(f"timed out ({timeout} s) waiting for {what}")
-
-
-def ca_atoms(url):
-    """Indices (file order = NGL's atom index) of the CA atoms in the viewer's /scene.pdb: always drawn."""
-    import urllib.request
-    base, query = url.split("?", 1)
-    with urllib.request.urlopen(base + "scene.pdb?" + query, timeout=30) as r:
-        lines = [l for l in r.read().decode().splitlines() if l.startswith(("ATOM", "HETATM"))]
-    return [i for i, l in enumerate(lines) if l[12:16].strip() == "CA"]
-
-
-def ds(page, key):
-    return page.eval(f"(document.body && document.body.dataset.{key}) || ''")
-
-
-def drag(page, atoms, dx, dy, steps=12):
-    """Presses on the first of `atoms` (display points) the page picks as an atom, moves by (dx, dy)
-    pixels and keeps the button down. Returns the atom pressed on, or None."""
-    for atom in atoms:
-        p = page.eval(f"haptreePointOnScreen({atom})")
-        x, y = p["x"], p["y"]
-        page.eval("document.body.dataset.pick = ''")
-        page.mouse("mouseMoved", x, y)
-        page.mouse("mousePressed", x, y, buttons=1, button="left")
-        pick = ds(page, "pick")
-        print(f"press on point {atom} at ({x:.0f}, {y:.0f}): page picked {pick!r}", flush=True)
-        if not pick.startswith("atom"):
-            page.mouse("mouseReleased", x, y, button="left")
-            continue
-        for k in range(1, steps + 1):
-            page.mouse("mouseMoved", x + dx * k / steps, y + dy * k / steps, buttons=1, button="left")
-            time.sleep(0.05)
-        return atom
-    return None
 
 
 def screenshot_when_pulling(page, path, tries=20):
@@ -135,14 +37,12 @@ def main():
     os.makedirs(out_dir, exist_ok=True)
     tag = "processes" if processes else "embedded"
     port = free_port()
-    launcher = Launcher(exe, port, processes, os.path.join(out_dir, f"launcher_{tag}.log"))
+    args = [exe, "--scene", "bacteriorhodopsin", "--users", "1", "--viewer-users", "2", "--viewer-port", str(port),
+            "--duration-s", "300"] + (["--processes"] if processes else [])
+    launcher = Launcher(args, os.path.join(out_dir, f"launcher_{tag}.log"))
     browser = None
-    failures = []
-
-    def check(cond, what):
-        print(("ok   " if cond else "FAIL ") + what, flush=True)
-        if not cond:
-            failures.append(what)
+    check = Checks()
+    failures = check.failures
 
     try:
         if not launcher.url_seen.wait(120):

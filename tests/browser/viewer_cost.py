@@ -23,24 +23,16 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cdp  # noqa: E402
+from session import free_port  # noqa: E402
 
 ARGS = ["--scene", "bacteriorhodopsin", "--dt", "0.0005", "--position-scale", "1", "--stiffness", "200",
         "--viewer-users", "1"]   # one user (scripted) in every run: the same couplers with and without viewer
-
-
-def free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
 
 
 def run(exe, seconds, mode):

@@ -19,78 +19,20 @@ built). Exit 0 on success."""
 import os
 import re
 import shutil
-import signal
-import socket
-import subprocess
 import sys
-import threading
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cdp  # noqa: E402
+from session import Checks, Launcher, ds, free_port, wait_for  # noqa: E402
 
-failures = []
-
-
-def check(cond, what):
-    print(("ok   " if cond else "FAIL ") + what, flush=True)
-    if not cond:
-        failures.append(what)
-
-
-def free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
-
-
-class Launcher:
-    def __init__(self, exe, args, log_path):
-        self.log = open(log_path, "w")
-        self.proc = subprocess.Popen([exe, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self.lines, self.url = [], None
-        self.url_seen = threading.Event()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self):
-        for line in self.proc.stdout:
-            self.log.write(line)
-            self.log.flush()
-            self.lines.append(line)
-            m = re.match(r"viewer: open (\S+)", line)
-            if m:
-                self.url = m.group(1)
-                self.url_seen.set()
-
-    def stop(self):
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return -9
-
-
-def wait_for(what, fn, timeout):
-    t_end = time.time() + timeout
-    while time.time() < t_end:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.25)
-    raise AssertionError(f"timed out ({timeout} s) waiting for {what}")
-
-
-def ds(page, key):
-    return page.eval(f"(document.body && document.body.dataset.{key}) || ''")
+check = Checks()
+failures = check.failures
 
 
 def robot(exe, browser, urdf, out_dir, docs, name, watch_body, expect_missing=0, pull_body=None, extra=()):
     port = free_port()
-    launcher = Launcher(exe, ["--urdf", urdf, "--users", "1", "--viewer-users", "1", "--viewer-port", str(port),
+    launcher = Launcher([exe, "--urdf", urdf, "--users", "1", "--viewer-users", "1", "--viewer-port", str(port),
                               "--duration-s", "120", "--pull-distance-m", "0.02", *extra],
                         os.path.join(out_dir, f"launcher_{name}.log"))
     page = None

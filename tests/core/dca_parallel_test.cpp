@@ -109,7 +109,7 @@ TEST(DcaParallel, AutomaticIsOffBelowTheThresholdAndSerialIsTheDefault) {
 
 // Work/span model of the passes (node counts): one node is one unit, tasks are assigned longest
 // first, the top nodes run in series. The speed-up W / makespan bounds what the threads can give
-// the passes (kinematics excluded: a serial O(n) sweep along the body tree, see docs/benchmarks.md).
+// the passes (kinematics excluded: a serial O(n) sweep along the body tree).
 TEST(DcaParallelModel, NodeCountSpeedUpOn2And16Threads) {
   struct Expect {
     Scene s;

@@ -1,5 +1,5 @@
 // The `browser` device (the mouse in the viewer's page): pointer messages on the bus -> device readings,
-// with the safety rules of issue 12 (NaN never forwarded, silence releases, takeover re-grabs).
+// with its safety rules (NaN never forwarded, silence releases, takeover re-grabs).
 #include <gtest/gtest.h>
 
 #include <cmath>

@@ -205,7 +205,7 @@ TEST(Safety, PassivityObserver) {
 }
 
 
-// Issue 15.2: when the coupling force is above the clamp (a deep pull), the watchdog ramp must still take
+// When the coupling force is above the clamp (a deep pull), the watchdog ramp must still take
 // the *felt* force to zero no faster than clamp / ramp_down_s. The gain used to be applied before the clamp:
 // a raw 30 N under a 3 N clamp stayed at 3 N until the gain fell below 0.1 and then dropped to zero in 0.5 ms
 // (600 N/s became 6000 N/s: a jerk at the hand), and it came back the same way after staleness.

@@ -196,6 +196,7 @@ TEST(SessionFile, OldOptionNamesWorkWithOneDeprecationLine) {
       {"coupler", "--rate-hz=2500", "coupler-rate-hz", "2500", "--rate-hz"},
       {"device_bridge", "--kind virtual_hand --option mass_kg=0.3 --rate-hz 500", "device-kind", "virtual_hand", "--kind"},
       {"viewer", "--port 0 --bind 127.0.0.1 --users 3", "viewer-users", "3", "--users"},
+      {"viewer", "--viewer-port 0 --no-token", "viewer-no-token", "true", "--no-token"},
       {"imd_bridge", "--scene ala20 --port 0 --user-id 4 --rate 7 --max-force 100", "imd-every-steps", "7", "--rate"},
   };
   for (const auto& c : cases) {
@@ -275,7 +276,7 @@ TEST(SessionFile, TwoHostsRecipeInDocsIsTheTestedFile) {
   const std::string token = write_file("viewer.token", "session-test-token-0123456789\n");
   for (const auto& [prog, exe] : programs()) {
     const Output r = run(exe + " --config " HAPTREE_SOURCE_DIR "/examples/sessions/two_hosts.toml --print-config" +
-                      (prog == "imd_bridge" ? " --scene ala20" : "") + (prog == "viewer" ? " --token-file " + token : ""),
+                      (prog == "imd_bridge" ? " --scene ala20" : "") + (prog == "viewer" ? " --viewer-token-file " + token : ""),
                       false);
     EXPECT_EQ(r.rc, 0) << prog << ":\n" << r.out;
   }
@@ -336,6 +337,32 @@ TEST(Launcher, DeviceKindRunsUserZeroOnThatDevice) {
     EXPECT_NE(bad.rc, 0) << bad.out;
     EXPECT_NE(bad.out.find("no_such_kind"), std::string::npos) << bad.out;
   }
+}
+
+TEST(Launcher, SessionFileGivesEachUserItsDevice) {
+  // User 1's device from [user.1] (holding still), user 0 the scripted pull: the reverse of the test above.
+  const std::string file = write_file("users_devices.toml",
+                                      "[haptree_run]\nusers = 2\n[user.1]\ndevice-kind = \"scripted\"\n"
+                                      "device-option = [\"grab_m=0,0,0.01\", \"pull_distance_m=0\"]\n");
+  for (const std::string mode : {"", "--processes "}) {
+    const std::string cmd = std::string(HAPTREE_RUN) + " " + mode + "--config " + file +
+                            " --duration-s 4 --scene protein_like --viewer-port 0";
+    const Output r = run(cmd);
+    ASSERT_EQ(r.rc, 0) << cmd << "\n" << r.out;
+    const double f0 = summary_max_force(r.out, 0), f1 = summary_max_force(r.out, 1);
+    std::printf("%s: user 0 (3 cm pull) peak |f| %.4f N, user 1 ([user.1], no pull) %.4f N\n",
+                mode.empty() ? "embedded" : "processes", f0, f1);
+    EXPECT_GT(f0, 0.05) << r.out;
+    EXPECT_LT(f1, 0.5 * f0) << r.out;
+  }
+  const std::string beyond = write_file("users_beyond.toml", "[user.3]\ndevice-kind = \"scripted\"\n");
+  Output bad = run(std::string(HAPTREE_RUN) + " --config " + beyond + " --users 2 --duration-s 2 --viewer-port 0");
+  EXPECT_EQ(bad.rc, 2) << bad.out;
+  EXPECT_NE(bad.out.find("[user.3]"), std::string::npos) << bad.out;
+  const std::string no_kind = write_file("users_no_kind.toml", "[user.1]\ndevice-option = [\"hold_s=1\"]\n");
+  bad = run(std::string(HAPTREE_RUN) + " --config " + no_kind + " --users 2 --duration-s 2 --viewer-port 0");
+  EXPECT_EQ(bad.rc, 2) << bad.out;
+  EXPECT_NE(bad.out.find("no device-kind"), std::string::npos) << bad.out;
 }
 
 TEST(Status, NoPlaceholderValues) {

@@ -243,7 +243,7 @@ TEST(TwoHosts, ServerAndWorkstationNamespacesOverVethUdpm) {
   const pid_t probe = start_probe(ns.b, key, token, 11.0, dir + "probe.txt");
   ASSERT_GT(probe, 0);
   pid_t sim = spawn_in(ns.a, with({HAPTREE_SIM_SERVER}), dir + "sim_server.log");
-  const pid_t viewer = spawn_in(ns.a, with({HAPTREE_VIEWER, "--token-file", token_file}), dir + "viewer.log");
+  const pid_t viewer = spawn_in(ns.a, with({HAPTREE_VIEWER, "--viewer-token-file", token_file}), dir + "viewer.log");
   std::vector<pid_t> ws;   // workstation: bridges, then couplers
   for (int u = 0; u < 2; ++u)
     ws.push_back(spawn_in(ns.b, with({HAPTREE_DEVICE_BRIDGE, "--device", std::to_string(u)}),

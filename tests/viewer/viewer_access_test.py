@@ -8,7 +8,7 @@ Runs the stand-alone viewer on memq:// (no session needed: it serves the scene's
   * WebSocket: no token, a wrong token, a foreign Origin -> 403; the pull token -> user 0 (role pull); the
     cookie alone -> accepted; the watch token -> role watch, no user, and its press is refused;
   * every refusal counted (the viewer's summary at exit) and logged once per client and reason;
-  * --no-token with a bind off the loopback, a short token file: refused at start with a one-line error;
+  * --viewer-no-token with a bind off the loopback, a short token file: refused at start with a one-line error;
   * TLS with a self-signed certificate made here by openssl: `openssl s_client` handshakes (certificate
     verified against itself) and gets 200 with the token, 403 without; Chromium
     (--ignore-certificate-errors) loads the page over https, opens wss, gets frames, and after a reload
@@ -42,8 +42,8 @@ def check(cond, what):
 class ViewerProc:
     def __init__(self, exe, args, log_path):
         self.log = open(log_path, "w")
-        self.proc = subprocess.Popen([exe, "--lcm-url", "memq://", "--scene", "chain", "--n", "5", "--port", "0",
-                                      "--users", "1", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen([exe, "--lcm-url", "memq://", "--scene", "chain", "--n", "5", "--viewer-port", "0",
+                                      "--viewer-users", "1", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines = []
         self.url = None
         t_end = time.time() + 30
@@ -107,7 +107,7 @@ def plain_tests(exe, out):
     for name, t in (("pull", pull), ("watch", watch)):
         with open(os.path.join(d, name), "w") as f:
             f.write(t + "\n")
-    v = ViewerProc(exe, ["--token-file", os.path.join(d, "pull"), "--watch-token-file", os.path.join(d, "watch")],
+    v = ViewerProc(exe, ["--viewer-token-file", os.path.join(d, "pull"), "--viewer-watch-token-file", os.path.join(d, "watch")],
                    os.path.join(out, "viewer_access_plain.log"))
     try:
         check(v.token == pull, f"the printed URL carries the file's token ({v.url})")
@@ -176,9 +176,9 @@ def refused_at_start(exe, out):
     tmp = os.path.join(out, "short_token")
     with open(tmp, "w") as f:
         f.write("short\n")
-    for args, what, needle in ((["--no-token", "--bind", "0.0.0.0"], "--no-token off the loopback", "needs a token"),
-                               (["--token-file", tmp], "a token file with a 5-character token", "16 to 256")):
-        p = subprocess.run([exe, "--lcm-url", "memq://", "--scene", "chain", "--n", "3", "--port", "0", *args],
+    for args, what, needle in ((["--viewer-no-token", "--viewer-bind", "0.0.0.0"], "--viewer-no-token off the loopback", "needs a token"),
+                               (["--viewer-token-file", tmp], "a token file with a 5-character token", "16 to 256")):
+        p = subprocess.run([exe, "--lcm-url", "memq://", "--scene", "chain", "--n", "3", "--viewer-port", "0", *args],
                            capture_output=True, text=True, timeout=30)
         text = p.stdout + p.stderr
         check(p.returncode == 1 and needle in text, f"{what} refused at start (exit {p.returncode}: {text.strip()[-120:]!r})")
@@ -191,7 +191,7 @@ def tls_tests(exe, out):
     subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
                     "-keyout", key, "-out", cert, "-days", "1", "-subj", "/CN=127.0.0.1",
                     "-addext", "subjectAltName=IP:127.0.0.1"], check=True, capture_output=True)
-    v = ViewerProc(exe, ["--tls-cert", cert, "--tls-key", key], os.path.join(out, "viewer_access_tls.log"))
+    v = ViewerProc(exe, ["--viewer-tls-cert", cert, "--viewer-tls-key", key], os.path.join(out, "viewer_access_tls.log"))
     browser = None
     try:
         check(v.scheme == "https" and len(v.token) == 48, f"TLS viewer prints an https URL with a random token ({v.url})")

@@ -83,7 +83,7 @@ def watch_replay(viewer, log, out_dir):
     """Starts the viewer, connects as a page would, plays the log; returns (hello, [(frame json, floats)])."""
     import websocket  # python3-websocket
     vlog = open(os.path.join(out_dir, "viewer_replay.log"), "w")
-    v = subprocess.Popen([viewer, "--lcm-url", URL, *SCENE, "--port", "0", "--users", "1"],
+    v = subprocess.Popen([viewer, "--lcm-url", URL, *SCENE, "--viewer-port", "0", "--viewer-users", "1"],
                          stdout=subprocess.PIPE, stderr=vlog, text=True)
     player = None
     try:
