@@ -164,6 +164,7 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   for (auto& t : sent_s_) t.store(-1);
   ch_state_ = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
+  ch_stats_ = bus::channel::stats(device::bridge_stats_name(opt_.device), opt_.channel_suffix);
   if (opt_.shm) {
     shm_state_ = std::make_unique<bus::ShmWriter>(ch_state_);
     // Never a FEEDBACK older than the feedback timeout, nor one of a dead or earlier coupler.
@@ -260,6 +261,8 @@ void DeviceBridge::on_feedback(const lcmt_feedback& m, double t) {
 
 double DeviceBridge::latency_percentile_us(double q) const { return hist_.percentile(q); }
 
+void DeviceBridge::publish_stats() { bus_.publish(ch_stats_, stats_message()); }
+
 lcmt_process_stats DeviceBridge::stats_message() {
   lcmt_process_stats m{};
   bus::stamp(m, instance_id_);
@@ -298,6 +301,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
   device::DeviceReading r;
   lcmt_device_state msg{};
   bool mirror_due = false;
+  publish_stats();   // at once: a coupler may be waiting for the device's limits before it starts
   while (!stop.load(std::memory_order_relaxed)) {
     const double t = now_s();
     r.grab_body = 0;   // a device that names no body or counts no presses leaves these at 0
@@ -362,6 +366,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
     if (now_s() > next + 0.01) next = now_s();
     if (t >= next_report) {
       report_problems();
+      publish_stats();
       next_report = t + 1.0;
     }
     if (opt_.busy_poll && shm_feedback_) {

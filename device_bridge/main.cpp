@@ -3,17 +3,13 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
-#include <chrono>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "device_bridge/device_bridge.hpp"
-#include "haptree/bus/channels.hpp"
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
 #include "haptree/bus/session_config.hpp"
-#include "haptree/device/reported_limits.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree device_bridge: device <-> DEVICE_STATE / FEEDBACK"};
@@ -76,29 +72,7 @@ int main(int argc, char** argv) {
     if (const auto w = haptree::bus::set_io_thread_priority(handler.native_handle(), rt_report, !o.shm); !w.empty())
       spdlog::warn("device_bridge: real-time: {}", w);
     haptree::DeviceBridge bridge(bus, o);
-    // Twice a second, off the device loop: this bridge's stats with the limits its device reported at
-    // open, which a coupler started with --device-limits-wait-s checks its gains against.
-    std::atomic<bool> loop_done{false};
-    std::thread stats([&] {
-      const std::string ch = haptree::bus::channel::stats(haptree::device::bridge_stats_name(o.device), o.channel_suffix);
-      for (int tick = 0; !loop_done.load(); ++tick) {
-        if (tick % 50 == 0) bus.publish(ch, bridge.stats_message());
-        std::this_thread::sleep_for(std::chrono::milliseconds(10));
-      }
-    });
-    struct JoinStats {   // also when run() throws: a joinable std::thread's destructor would terminate
-      std::atomic<bool>& done;
-      std::thread& t;
-      ~JoinStats() {
-        done = true;
-        t.join();
-      }
-    };
-    int rc = 0;
-    {
-      const JoinStats join{loop_done, stats};
-      rc = bridge.run(g_stop);
-    }
+    const int rc = bridge.run(g_stop);
     handler.stop();
     if (rc == haptree::kExitDeviceFault)
       spdlog::critical("device_bridge {}: {}; zero force and torque written, force output off, device closed",
