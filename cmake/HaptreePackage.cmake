@@ -117,15 +117,17 @@ file(RELATIVE_PATH HAPTREE_PC_UP /p/${CMAKE_INSTALL_LIBDIR}/pkgconfig /p)
 configure_file(${PROJECT_SOURCE_DIR}/cmake/haptree.pc.in ${PROJECT_BINARY_DIR}/haptree.pc @ONLY)
 install(FILES ${PROJECT_BINARY_DIR}/haptree.pc DESTINATION ${CMAKE_INSTALL_LIBDIR}/pkgconfig COMPONENT dev)
 
-# systemd: sim_server@, coupler@, device_bridge@ (options from /etc/haptree/<program>-<instance>.conf),
-# the haptree user (sysusers.d), an example options file. Written at install time so that ExecStart
-# names the prefix actually installed into (cmake --install --prefix, or /usr in the .deb).
-set(HAPTREE_SYSCONF_DIR /etc/haptree CACHE STRING "Where the services read their options files")
+# systemd: sim_server@, coupler@, device_bridge@ (instance NAME: the session file /etc/haptree/NAME.toml,
+# optional settings in /etc/haptree/<program>-NAME.conf), the haptree user (sysusers.d), an example
+# settings file and an example session. Written at install time so that ExecStart names the prefix
+# actually installed into (cmake --install --prefix, or /usr in the .deb).
+set(HAPTREE_SYSCONF_DIR /etc/haptree CACHE STRING "Where the services read their session and settings files")
 foreach(unit sim_server coupler device_bridge)
   install(CODE "
     set(PROGRAM ${unit})
     set(SYSCONF ${HAPTREE_SYSCONF_DIR})
     set(BINDIR \"\${CMAKE_INSTALL_PREFIX}/${CMAKE_INSTALL_BINDIR}\")
+    set(DATADIR \"\${CMAKE_INSTALL_PREFIX}/${HAPTREE_DATA_ROOT}\")
     configure_file(\"${PROJECT_SOURCE_DIR}/packaging/systemd/haptree-process@.service.in\"
                    \"\$ENV{DESTDIR}\${CMAKE_INSTALL_PREFIX}/lib/systemd/system/${unit}@.service\" @ONLY)
     message(STATUS \"Installing: \$ENV{DESTDIR}\${CMAKE_INSTALL_PREFIX}/lib/systemd/system/${unit}@.service\")"
@@ -133,7 +135,11 @@ foreach(unit sim_server coupler device_bridge)
 endforeach()
 install(FILES ${PROJECT_SOURCE_DIR}/packaging/systemd/haptree.sysusers DESTINATION lib/sysusers.d
         RENAME haptree.conf COMPONENT runtime)
-install(FILES ${PROJECT_SOURCE_DIR}/packaging/systemd/example.conf DESTINATION ${HAPTREE_DATA_ROOT}/systemd
+set(SYSCONF ${HAPTREE_SYSCONF_DIR})
+configure_file(${PROJECT_SOURCE_DIR}/packaging/systemd/example.conf ${PROJECT_BINARY_DIR}/systemd/example.conf @ONLY)
+install(FILES ${PROJECT_BINARY_DIR}/systemd/example.conf DESTINATION ${HAPTREE_DATA_ROOT}/systemd
+        COMPONENT runtime)
+install(FILES ${PROJECT_SOURCE_DIR}/examples/sessions/two_hosts.toml DESTINATION ${HAPTREE_DATA_ROOT}/examples/sessions
         COMPONENT runtime)
 
 # Man pages from each program's --help (Debian's help2man), gzipped as Debian installs them.
@@ -190,8 +196,11 @@ set(CPACK_DEBIAN_DEV_PACKAGE_SECTION libdevel)
 set(CPACK_DEBIAN_DEV_DESCRIPTION "haptree development files
  Headers, static libraries, the CMake package (find_package(haptree)) and haptree.pc.")
 set(CPACK_DEBIAN_DEV_PACKAGE_DEPENDS
-    "haptree (= ${PROJECT_VERSION}), libeigen3-dev, liblcm-dev, libglib2.0-dev, nlohmann-json3-dev, liburdfdom-dev, libsodium-dev, libspdlog-dev, pkg-config")
+    "haptree (= ${PROJECT_VERSION}), libeigen3-dev, liblcm-dev, libglib2.0-dev, nlohmann-json3-dev, liburdfdom-dev, libsodium-dev, libspdlog-dev, libcli11-dev, pkg-config")
 set(CPACK_DEBIAN_PYTHON_PACKAGE_NAME python3-haptree)
+set(PYTHON_PACKAGE_DIR ${CPACK_PACKAGING_INSTALL_PREFIX}/${HAPTREE_PYTHON_INSTALL_DIR}/haptree)
+configure_file(${PROJECT_SOURCE_DIR}/packaging/python-prerm ${PROJECT_BINARY_DIR}/packaging/python/prerm @ONLY)
+set(CPACK_DEBIAN_PYTHON_PACKAGE_CONTROL_EXTRA ${PROJECT_BINARY_DIR}/packaging/python/prerm)
 set(CPACK_DEBIAN_PYTHON_PACKAGE_SECTION python)
 set(CPACK_DEBIAN_PYTHON_DESCRIPTION "haptree Python module
  Models, dynamics, molecules and the LCM log reader from Python (import haptree).")

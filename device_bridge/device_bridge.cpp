@@ -292,7 +292,7 @@ int DeviceBridge::run(const std::atomic<bool>& stop) {
 }
 
 int DeviceBridge::loop(const std::atomic<bool>& stop) {
-  // FTZ/DAZ in the device loop (issue 13.3), as in the coupler's: no subnormal operand costs an assist.
+  // FTZ/DAZ in the device loop, as in the coupler's: no subnormal operand costs an assist.
   const ScopedFlushDenormals ftz;
   ftz_daz_.store(ScopedFlushDenormals::active(), std::memory_order_relaxed);
   const double period = 1.0 / opt_.rate_hz;

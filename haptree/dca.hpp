@@ -29,7 +29,7 @@ void dca_top_down_node(const Model& model, Data& data, int node) noexcept;
 
 void dca_bottom_up(const Model& model, Data& data, const State& state) noexcept;
 // The two parts of dca_bottom_up, for callers that assemble only some nodes (adaptive.cpp's
-// incremental metric, issue 13.1): the cluster offsets (once per pass, before any node), and one
+// incremental metric): the cluster offsets (once per pass, before any node), and one
 // node as dca_bottom_up assembles it (leaf, inertia-form cluster node, or ordinary node).
 void dca_cluster_offsets(const Model& model, Data& data) noexcept;
 // One body's step of it: data.cluster_offset[k] (+ _lo) = its parent's + d_k, compensated
@@ -42,11 +42,11 @@ void dca_top_down(const Model& model, Data& data) noexcept;
 // passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
 
-// Data::refine (issue 14.2). kExtended sizes the long-double inverse-dynamics buffers (O(nbodies),
+// Data::refine. kExtended sizes the long-double inverse-dynamics buffers (O(nbodies),
 // 480 bytes per body); call it before the pass, not in it.
 void set_refinement(const Model& model, Data& data, Refinement r);
 
-// Threads for forward_dynamics (issue 13.4). threads = 1: serial (the default). threads > 1: that
+// Threads for forward_dynamics. threads = 1: serial (the default). threads > 1: that
 // many, if the build has OpenMP. threads = 0: automatic, i.e. on only where it pays: at least
 // kDcaParallelMinNodes assembly nodes, at least 2 CPUs in this process's affinity mask and a free
 // core now (1-minute load average ≤ CPUs − 1); then one thread per CPU. Decided at this call (call

@@ -4,14 +4,15 @@
 # each with the machine and the exact command beside it. Re-running it is how the page is updated.
 #
 #   scripts/bench_report.sh [options] [SECTION...]
-#     SECTION      dca dcathreads adaptive coupler forcefield bus scaling threads latency
-#                  (default: all but latency)
+#     SECTION      dca dcathreads adaptive coupler forcefield bus scaling threads latency viewer
+#                  (default: all but latency and viewer)
 #     --build DIR  build folder with the benchmark programs (default build; configure with
 #                  -DHAPTREE_BUILD_BENCH=ON, then: cmake --build DIR --target bench_peers dca_bench
 #                  adaptive_sweep coupling_bench molecule_bench bus_bench scaling_bench stress_report)
 #     --data DIR   where the CSV go (default docs/data)
 #     --page FILE  the page to rewrite (default docs/performance.md)
-#     --quick      tiny sizes and durations (under a minute in all): checks the script, not the machine
+#     --quick      tiny sizes and durations (under a minute in all): checks the script, not the
+#                  machine; without --page/--data it writes into a new temporary folder
 #     --dry-run    print the commands; run nothing, change nothing
 #
 # Sections and what they run (full sizes; --quick shrinks each):
@@ -27,10 +28,12 @@
 #   threads    no run: renders docs/data/scaling_16_threads/ (scripts/scaling_many_cores.sh with
 #              OUT=docs/data/scaling_16_threads on a many-core machine re-measures it)
 #   latency    scripts/measure_latency.sh (root, stress-ng, rt-tests; only when named)       (~6 min)
+#   viewer     tests/browser/viewer_cost.py: the session without viewer, with it, with a headless
+#              chromium tab (chromium; only when named)                                       (~1 min)
 # A program that is not built is said and its block left as it is (exit status 1 at the end).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
-build=build data=docs/data page=docs/performance.md quick=0 dry=0
+build=build data= page= quick=0 dry=0
 sections=()
 while [ $# -gt 0 ]; do
   case $1 in
@@ -47,10 +50,18 @@ done
 [ ${#sections[@]} -gt 0 ] || sections=(dca dcathreads adaptive coupler forcefield bus scaling threads)
 cd "$root"
 tables="python3 $root/scripts/bench_tables.py"
-[ -f "$page" ] || { echo "bench_report: $page: no such file" >&2; exit 2; }
-mkdir -p "$data"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
+# A quick run checks the script: unless told otherwise it leaves the committed page and data alone.
+if [ $quick -eq 1 ] && [ -z "$page$data" ] && [ $dry -eq 0 ]; then
+  scratch=$(mktemp -d)
+  page=$scratch/performance.md data=$scratch/data
+  cp docs/performance.md "$page"
+  echo "bench_report: --quick writes into $scratch (give --page/--data to choose)"
+fi
+page=${page:-docs/performance.md} data=${data:-docs/data}
+[ -f "$page" ] || { echo "bench_report: $page: no such file" >&2; exit 2; }
+mkdir -p "$data"
 missing=0
 
 # The machine, as the programs see it: CPU model and cores from the kernel, the ISA level of the
@@ -181,6 +192,16 @@ for s in "${sections[@]}"; do
       run latency bash scripts/measure_latency.sh "$build" $dur "$data/latency.csv" "$filter"
       [ $dry -eq 1 ] || $tables latency "$data/latency.csv" > "$tmp/latency.md"
       block latency "scripts/measure_latency.sh $build $dur $data/latency.csv '$filter'" ;;
+    viewer)
+      command -v chromium >/dev/null || { echo "bench_report: viewer needs Debian's chromium" >&2; missing=1; continue; }
+      have tools/haptree_run viewer || continue
+      secs=20; [ $quick -eq 0 ] || secs=3
+      run viewer /usr/bin/python3 tests/browser/viewer_cost.py "$build/tools/haptree_run" $secs
+      if [ $dry -eq 0 ]; then
+        $tables md2csv < "$tmp/viewer.out" > "$data/viewer_cost.csv"
+        grep '^|' "$tmp/viewer.out" > "$tmp/viewer.md"
+      fi
+      block viewer "/usr/bin/python3 tests/browser/viewer_cost.py $build/tools/haptree_run $secs" ;;
     *) echo "bench_report: unknown section '$s' (see --help)" >&2; exit 2 ;;
   esac
 done

@@ -43,8 +43,17 @@ TEST(DeviceRamp, FeedbackGapRampsDownAndBackWithoutAStep) {
       std::this_thread::sleep_for(500us);
     }
   });
-  std::this_thread::sleep_for(400ms);
-  const double before = bridge.last_force_n();
+  // The full force once the feedback flows (a loaded machine may stall the 2 kHz thread past the
+  // timeout for a moment: wait for the force rather than sample it once).
+  auto settled = [&] {
+    for (auto end = std::chrono::steady_clock::now() + 5s; std::chrono::steady_clock::now() < end;) {
+      if (bridge.last_force_n() == 2.0) return 2.0;
+      std::this_thread::sleep_for(1ms);
+    }
+    return bridge.last_force_n();
+  };
+  std::this_thread::sleep_for(100ms);
+  const double before = settled();
   pause = true;
   double min_in_gap = 1e9;   // sampled all through a 150 ms gap (> timeout + ramp): it must reach zero
   for (auto end = std::chrono::steady_clock::now() + 150ms; std::chrono::steady_clock::now() < end;) {
@@ -52,8 +61,7 @@ TEST(DeviceRamp, FeedbackGapRampsDownAndBackWithoutAStep) {
     std::this_thread::sleep_for(200us);
   }
   pause = false;
-  std::this_thread::sleep_for(400ms);
-  const double after = bridge.last_force_n();
+  const double after = settled();
   quit = true;
   coupler.join();
   stop = true;
