@@ -6,7 +6,7 @@
 // so the grabbed body hangs on the coupling spring and pulls the hand with more than the force limit. Checked from the fake's log of every force written and from the launcher's --json status:
 // the device's poses reach the coupler (the grab happens), the forces written are finite and never
 // above the force limit (reached: the pull is larger), none is written before force output is
-// enabled (on the first FEEDBACK) nor before the grab, the last force written is zero once the launcher
+// enabled (on the first FEEDBACK: never before user 0's coupler existed) nor before the grab, the last force written is zero once the launcher
 // ends (--duration-s or SIGTERM), then force output is off and the device closed, and no child process
 // is left running.
 #include <gtest/gtest.h>
@@ -14,6 +14,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <ctime>
 #include <regex>
 #include <cstdio>
 #include <sstream>
@@ -85,7 +86,30 @@ bool running(pid_t p) {
 
 // What every launcher run with a device must show (forces in the fake's log; max_n: the force limit,
 // reached because the hanging chain pulls harder).
-void expect_session(const Launch& l, const std::vector<Event>& ev, double max_n, bool processes) {
+// The unix time of the first line of user 0's coupler (logged as it is constructed, before it can send
+// any FEEDBACK), from its spdlog stamp (local time, ms truncated: at most the true time); -1 if none.
+double coupler_constructed(const std::string& log_dir) {
+  std::istringstream in(slurp(log_dir + "/coupler_0.log"));
+  static const std::regex line(R"(^\[(\d+)-(\d+)-(\d+) (\d+):(\d+):(\d+)\.(\d+)\] \[info\] coupler 0: device)");
+  for (std::string l; std::getline(in, l);) {
+    std::smatch m;
+    if (!std::regex_search(l, m, line)) continue;
+    std::tm tm{};
+    tm.tm_year = std::stoi(m[1].str()) - 1900;
+    tm.tm_mon = std::stoi(m[2].str()) - 1;
+    tm.tm_mday = std::stoi(m[3].str());
+    tm.tm_hour = std::stoi(m[4].str());
+    tm.tm_min = std::stoi(m[5].str());
+    tm.tm_sec = std::stoi(m[6].str());
+    tm.tm_isdst = -1;
+    return static_cast<double>(std::mktime(&tm)) + 1e-3 * std::stoi(m[7].str());
+  }
+  return -1;
+}
+
+// log_dir: the launcher's --log-dir with --processes, "" embedded.
+void expect_session(const Launch& l, const std::vector<Event>& ev, double max_n, const std::string& log_dir) {
+  const bool processes = !log_dir.empty();
   EXPECT_EQ(l.rc, 0) << l.out;
   int grabbed = 0;
   for (const auto& j : l.json) grabbed = std::max(grabbed, grab_body(j));
@@ -106,9 +130,13 @@ void expect_session(const Launch& l, const std::vector<Event>& ev, double max_n,
   EXPECT_LE(fmax, max_n + tol) << "a force above the limit was written";
   EXPECT_GE(fmax, max_n - tol) << "the chain's pull should have been rendered at the limit";
   EXPECT_GE(t_first_nonzero, t_open + 0.3) << "a force before the grab button was pressed";
-  expect_no_force_before_enable(ev);
+  const double t_enable = expect_no_force_before_enable(ev);
   expect_zero_last_then_off_then_closed(ev);
   if (processes) {
+    // Force output comes on only with the first FEEDBACK, which the coupler sends once it exists.
+    const double t_coupler = coupler_constructed(log_dir);
+    ASSERT_GT(t_coupler, 0) << slurp(log_dir + "/coupler_0.log");
+    EXPECT_GE(t_enable, t_coupler) << "force output enabled before user 0's coupler existed";
     EXPECT_EQ(l.children.size(), 3u) << l.out;
     for (pid_t c : l.children) EXPECT_FALSE(running(c)) << "child " << c << " still running\n" << l.out;
     EXPECT_NE(l.out.find("device_bridge_0 exit code 0"), std::string::npos) << l.out;
@@ -124,28 +152,28 @@ std::string fresh_log(const std::string& name) {
 // The fake devices start at the point the launcher maps onto the grabbed body: (0, 0, 0.01) m in the view.
 TEST(DeviceLauncher, OpenHapticsProcessesEndedByDuration) {
   const std::string flog = fresh_log("hd_processes");
-  const Launch l = launch("hd_processes", launcher_args(true, "openhaptics", {std::string("lib=") + FAKE_HD_LIB}, 3,
-                                                        ::testing::TempDir() + "launcher_hd_processes"),
+  const std::string dir = ::testing::TempDir() + "launcher_hd_processes";
+  const Launch l = launch("hd_processes", launcher_args(true, "openhaptics", {std::string("lib=") + FAKE_HD_LIB}, 3, dir),
                           {{"FAKE_HAPTIC_LOG", flog}, {"FAKE_HAPTIC_PATH", "0:0,0,10"}, {"FAKE_HAPTIC_BUTTONS", "0:0;0.3:1"}});
-  expect_session(l, read_log_until_closed(flog), 3.0, true);
+  expect_session(l, read_log_until_closed(flog), 3.0, dir);
 }
 
 TEST(DeviceLauncher, ForceDimensionProcessesEndedBySigterm) {
   // Vendor axes: x towards the user (the view's +z), y right, z up; metres.
   const std::string flog = fresh_log("dhd_processes");
-  const Launch l = launch("dhd_processes", launcher_args(true, "forcedimension", {std::string("lib=") + FAKE_DHD_LIB}, 0,
-                                                         ::testing::TempDir() + "launcher_dhd_processes"),
+  const std::string dir = ::testing::TempDir() + "launcher_dhd_processes";
+  const Launch l = launch("dhd_processes", launcher_args(true, "forcedimension", {std::string("lib=") + FAKE_DHD_LIB}, 0, dir),
                           {{"FAKE_HAPTIC_LOG", flog}, {"FAKE_HAPTIC_PATH", "0:0.01,0,0"}, {"FAKE_HAPTIC_BUTTONS", "0:0;0.3:1"}},
                           3.5);
   EXPECT_NE(l.out.find("interrupted, stopping the children"), std::string::npos) << l.out;
-  expect_session(l, read_log_until_closed(flog), 3.0, true);
+  expect_session(l, read_log_until_closed(flog), 3.0, dir);
 }
 
 TEST(DeviceLauncher, OpenHapticsEmbedded) {
   const std::string flog = fresh_log("hd_embedded");
   const Launch l = launch("hd_embedded", launcher_args(false, "openhaptics", {std::string("lib=") + FAKE_HD_LIB}, 3, ""),
                           {{"FAKE_HAPTIC_LOG", flog}, {"FAKE_HAPTIC_PATH", "0:0,0,10"}, {"FAKE_HAPTIC_BUTTONS", "0:0;0.3:1"}});
-  expect_session(l, read_log_until_closed(flog), 3.0, false);
+  expect_session(l, read_log_until_closed(flog), 3.0, "");
 }
 
 // The gains are checked against the limits the device reports at open (here a max force of 2 N, below the
@@ -181,15 +209,15 @@ TEST(DeviceLauncher, ProcessesCouplerRefusesGainsAboveTheLimitsTheDeviceReports)
 // 400 N/m: 100 x 10 x 0.5 = 500 N/m) to the device's limits and the session runs at them.
 TEST(DeviceLauncher, ProcessesCouplerClampsGainsToTheLimitsTheDeviceReports) {
   const std::string flog = fresh_log("hd_clamp");
-  std::vector<std::string> args = launcher_args(true, "openhaptics", {std::string("lib=") + FAKE_HD_LIB}, 3,
-                                                ::testing::TempDir() + "launcher_hd_clamp");
+  const std::string dir = ::testing::TempDir() + "launcher_hd_clamp";
+  std::vector<std::string> args = launcher_args(true, "openhaptics", {std::string("lib=") + FAKE_HD_LIB}, 3, dir);
   args.insert(args.end(), {"--stiffness", "100", "--clamp-gains"});
   const Launch l = launch("hd_clamp", args,
                           {{"FAKE_HAPTIC_LOG", flog}, {"FAKE_HAPTIC_PATH", "0:0,0,10"}, {"FAKE_HAPTIC_BUTTONS", "0:0;0.3:1"},
                            {"FAKE_HAPTIC_MAX_FORCE", "2"}});
-  const std::string clog = slurp(::testing::TempDir() + "launcher_hd_clamp/coupler_0.log");
+  const std::string clog = slurp(dir + "/coupler_0.log");
   EXPECT_NE(clog.find("--clamp-gains: stiffness 100 -> 80, damping 0 -> 0, max force 3 -> 2 N"), std::string::npos) << clog;
-  expect_session(l, read_log_until_closed(flog), 2.0, true);
+  expect_session(l, read_log_until_closed(flog), 2.0, dir);
 }
 
 // Embedded: the launcher opens the device before the coupler and refuses (exit 2) the same way.
