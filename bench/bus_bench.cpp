@@ -76,8 +76,15 @@ std::vector<double> shm_device_side(const std::string& state_ch, const std::stri
     const auto t0 = Clock::now();
     out.write_msg(make_state(k));
     const auto give_up = t0 + std::chrono::seconds(5);
+    auto resend = t0 + std::chrono::milliseconds(10);
     while (true) {
       if (in.read_msg(fb) == ShmRead::kNew && fb.echo_device_seq == k) break;
+      // A reader drops what was written before it opened: until the echo side is up (a forked
+      // process starts later than this loop), the first state is published again.
+      if (Clock::now() > resend) {
+        out.write_msg(make_state(k));
+        resend = Clock::now() + std::chrono::milliseconds(10);
+      }
       if (Clock::now() > give_up) {
         std::fprintf(stderr, "shm: no echo for seq %d within 5 s\n", k);
         *elapsed_s = std::chrono::duration<double>(Clock::now() - t_start).count();

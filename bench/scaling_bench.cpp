@@ -8,6 +8,7 @@
 //
 //   scaling_bench --sizes 1024,4096,16384,65536,262144 --k 48,256 --steps 2000 --csv scaling.csv
 //   OMP_NUM_THREADS=4 scaling_bench --threads 4 ...   (full pass and selection worker on 4 threads)
+//   scaling_bench --sizes 65536 --k 48 --memory        (bytes per body of every workspace container)
 #include <algorithm>
 #include <chrono>
 #include <ctime>
@@ -54,12 +55,44 @@ double thread_cpu_us() {
 
 double ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
 
+// Bytes per body of every workspace container above 1 % of the total (the rest summed), largest
+// first, against the resident memory the run added beyond the model.
+std::string memory_table(const std::string& shape, const haptree::Model& model, int k, double rss_mb_beyond,
+                         const haptree::State& st, const haptree::Data& d, const haptree::AdaptiveData& ad) {
+  std::vector<haptree::MemoryItem> items = haptree::memory_usage(st);
+  for (auto&& part : {haptree::memory_usage(d), haptree::memory_usage(ad)})
+    items.insert(items.end(), part.begin(), part.end());
+  const double total = static_cast<double>(haptree::total_bytes(items));
+  std::sort(items.begin(), items.end(), [](const auto& a, const auto& b) { return a.bytes > b.bytes; });
+  const double nb = model.nbodies;
+  char line[256];
+  std::snprintf(line, sizeof line,
+                "\nMemory of the workspaces, %s n = %d, k = %d (bytes per body, capacity after the run; %d assembly "
+                "nodes):\n\n| container | bytes / body | share |\n|---|---|---|\n",
+                shape.c_str(), model.nbodies - 1, k, model.tree.nnodes());
+  std::string s = line;
+  double rest = 0;
+  for (const auto& i : items) {
+    if (i.bytes < 0.01 * total) {
+      rest += static_cast<double>(i.bytes);
+      continue;
+    }
+    std::snprintf(line, sizeof line, "| %s | %.0f | %.1f %% |\n", i.name.c_str(), i.bytes / nb, 100.0 * i.bytes / total);
+    s += line;
+  }
+  std::snprintf(line, sizeof line, "| others (each < 1 %%) | %.0f | %.1f %% |\n| **total** | **%.0f** | 100 %% |\n"
+                "\nResident memory beyond the model: %.0f bytes per body.\n",
+                rest / nb, 100.0 * rest / total, total / nb, rss_mb_beyond * 1024.0 * 1024.0 / nb);
+  s += line;
+  return s;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   std::string sizes = "1024,4096,16384,65536", ks = "48,256", shapes = "chain,binary_tree", csv;
   int steps = 2000, threads = 1, full_reps = 3;
-  bool background = true;
+  bool background = true, memory = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string {
@@ -77,14 +110,17 @@ int main(int argc, char** argv) {
     else if (a == "--full-reps") full_reps = std::stoi(next());
     else if (a == "--csv") csv = next();
     else if (a == "--synchronous") background = false;
+    else if (a == "--memory") memory = true;
     else if (a == "--help" || a == "-h") {
       std::printf(
           "scaling_bench [--sizes 1024,4096,...] [--k 48,256] [--shapes chain,binary_tree] [--steps N]\n"
-          "              [--threads T] [--full-reps R] [--synchronous] [--csv FILE]\n"
+          "              [--threads T] [--full-reps R] [--synchronous] [--memory] [--csv FILE]\n"
           "  sizes: bodies per model (a binary tree gets n-1, a complete tree); k: active DOF budgets;\n"
           "  steps: adaptive steps per run (dt 1 ms, gravity off, 2 N pull on the last body);\n"
           "  threads: set_dca_threads for the full pass (1 = serial); --synchronous: selections inside\n"
-          "  the step (background_selection = false). Times in microseconds, memory in MB.\n");
+          "  the step (background_selection = false); --memory: after the table, the bytes per body of\n"
+          "  every container of State, Data, AdaptiveData and the selection worker's copies (capacity),\n"
+          "  after the run. Times in microseconds, memory in MB.\n");
       return 0;
     } else {
       std::fprintf(stderr, "scaling_bench: unknown option %s (see --help)\n", a.c_str());
@@ -104,6 +140,7 @@ int main(int argc, char** argv) {
   std::printf("| shape | n | k | median µs | mean µs | p99 µs | worst µs | worst/median | CPU median/p99/worst µs | "
               "worst step work | selections | model ms | Data ms | RSS MB | KB/body beyond model | full pass µs | load |\n"
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::string memory_tables;
   for (const auto& shape : split(shapes))
     for (const auto& ns : split(sizes)) {
       const int n_req = std::stoi(ns);
@@ -153,6 +190,7 @@ int main(int argc, char** argv) {
           }
           const std::int64_t selections = ad.report.selections;
           const double rss_total = rss_mb();
+          if (memory) memory_tables += memory_table(shape, *model, k, rss_total - rss_model, st, d, ad);
           // One full pass (the selection's and every start-up's cost), best of full_reps.
           for (int r = 0; r < full_reps; ++r) {
             const auto a = Clock::now();
@@ -193,6 +231,7 @@ int main(int argc, char** argv) {
         }
       }
     }
+  std::fputs(memory_tables.c_str(), stdout);
   if (out) std::fclose(out);
   return 0;
 }

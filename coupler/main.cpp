@@ -3,14 +3,59 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
+#include <chrono>
+#include <mutex>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "coupler/coupler.hpp"
+#include "haptree/bus/channels.hpp"
 #include "haptree/bus/cli.hpp"
 #include "haptree/bus/realtime_cli.hpp"
 #include "haptree/bus/session_config.hpp"
 #include "haptree/device/device_cli.hpp"
+#include "haptree/device/reported_limits.hpp"
+
+namespace {
+
+// Waits for device_bridge `device`'s stats carrying its device's limits: 1 and `out` filled, 0 after
+// `wait_s` without them, -1 if stopped first.
+int wait_reported_limits(haptree::bus::Bus& bus, int device, const std::string& suffix, double wait_s,
+                         const std::atomic<bool>& stop, haptree::device::DeviceDescription& out) {
+  std::mutex m;
+  bool got = false;
+  auto& sub = bus.subscribe<haptree::lcmt_process_stats>(
+      haptree::bus::channel::stats(haptree::device::bridge_stats_name(device), suffix),
+      [&](const haptree::lcmt_process_stats& msg, const std::string&) {
+        haptree::device::DeviceDescription d;
+        if (!haptree::device::get_reported_limits(msg, d)) return;
+        d.model = "device " + std::to_string(device);
+        std::lock_guard<std::mutex> l(m);
+        out = d;
+        got = true;
+      });
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(wait_s);
+  int rc = 0;
+  while (std::chrono::steady_clock::now() < end) {
+    if (stop.load()) {
+      rc = -1;
+      break;
+    }
+    {
+      std::lock_guard<std::mutex> l(m);
+      if (got) {
+        rc = 1;
+        break;
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  sub.close();   // its callback captures this frame
+  return rc;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"haptree coupler: O(log n) force feedback at haptic rate (one per user/device)"};
@@ -60,6 +105,12 @@ int main(int argc, char** argv) {
           "HEX"));
   haptree::device::DeviceLimitOptions limits;   // gains vs device and passivity bound (docs/devices.md)
   haptree::device::add_device_limit_options(app, limits);
+  double device_limits_wait_s = 0;
+  app.add_option("--device-limits-wait-s", device_limits_wait_s,
+                 "wait up to this long at start for the limits the device reports (device_bridge --device N publishes "
+                 "them at open) and check the gains against them too, over --device-model's; s (0: --device-model "
+                 "only; none within the wait: a warning, and --device-model only)")
+      ->check(CLI::Range(0.0, 600.0))->capture_default_str();
   haptree::bus::RealtimeOptions rt;   // docs/performance.md, "Latency per transport"
   haptree::bus::add_realtime_options(app, rt,
                                      "with busy-wait pacing, iterate as soon as a new device pose arrives instead of "
@@ -89,6 +140,18 @@ int main(int argc, char** argv) {
     // above the loop: the handler brings the snapshots (and the poses over udpm) to a loop that may spin
     if (const auto w = haptree::bus::set_io_thread_priority(handler.native_handle(), rt_report, true); !w.empty())
       spdlog::warn("coupler: real-time: {}", w);
+    if (device_limits_wait_s > 0) {
+      haptree::device::DeviceDescription reported;
+      const int got = wait_reported_limits(bus, o.device, o.channel_suffix, device_limits_wait_s, g_stop, reported);
+      if (got < 0) return 0;   // stopped while waiting
+      if (got == 0) {
+        spdlog::warn("coupler {}: device_bridge {} reported no device limits within {} s: gains checked against "
+                     "--device-model {} only", o.user, o.device, device_limits_wait_s, limits.model);
+      } else if (!haptree::device::enforce_device_limits(limits, o.stiffness, o.damping, o.position_scale,
+                                                         o.force_scale, o.max_force_n, o.rate_hz, "coupler", &reported)) {
+        return 2;
+      }
+    }
     haptree::Coupler coupler(bus, o);
     const int rc = coupler.run(g_stop);
     handler.stop();   // no callback may run into a destroyed Coupler

@@ -17,6 +17,7 @@
 #include "haptree/bus/pacing.hpp"
 #include "haptree/bus/wire.hpp"
 #include "haptree/device/convert.hpp"
+#include "haptree/device/reported_limits.hpp"
 #include "haptree/device/registry.hpp"
 #include "haptree/device/vendor_library.hpp"
 #include "haptree/safety.hpp"
@@ -145,7 +146,8 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   const device::Status s = device_->open();
   if (!s.ok()) throw std::runtime_error(std::string("device_bridge: open failed: ") + s.reason);
   // A device that reports its own maximum lowers the force limit to it (never raises it).
-  const device::DeviceDescription d = device_->describe();
+  desc_ = device_->describe();
+  const device::DeviceDescription& d = desc_;
   if (std::isfinite(d.max_force_n) && d.max_force_n > 0 && d.max_force_n < opt_.max_force_n) {
     spdlog::info("device_bridge {}: {} reports a max force of {} N: forces clamped there (--max-force-n {} N)",
                  opt_.device, d.model.empty() ? opt_.kind : d.model, d.max_force_n, opt_.max_force_n);
@@ -162,6 +164,7 @@ DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
   for (auto& t : sent_s_) t.store(-1);
   ch_state_ = bus::channel::device_state(opt_.device, opt_.channel_suffix);
   ch_feedback_ = bus::channel::feedback(opt_.device, opt_.channel_suffix);
+  ch_stats_ = bus::channel::stats(device::bridge_stats_name(opt_.device), opt_.channel_suffix);
   if (opt_.shm) {
     shm_state_ = std::make_unique<bus::ShmWriter>(ch_state_);
     // Never a FEEDBACK older than the feedback timeout, nor one of a dead or earlier coupler.
@@ -257,6 +260,24 @@ void DeviceBridge::on_feedback(const lcmt_feedback& m, double t) {
 }
 
 double DeviceBridge::latency_percentile_us(double q) const { return hist_.percentile(q); }
+
+void DeviceBridge::publish_stats() { bus_.publish(ch_stats_, stats_message()); }
+
+lcmt_process_stats DeviceBridge::stats_message() {
+  lcmt_process_stats m{};
+  bus::stamp(m, instance_id_);
+  m.seq = ++stats_seq_;
+  m.process_name = device::bridge_stats_name(opt_.device);
+  m.process_id = opt_.device;
+  m.snapshot_age_ms = -1;
+  m.messages_in = feedbacks_.load();
+  m.messages_out = readings_.load();
+  m.rejected_messages = refused_.load();
+  m.extra_names = {"max_force_n"};
+  m.extra_values = {opt_.max_force_n};
+  device::put_reported_limits(desc_, m);
+  return m;
+}
 uint64_t DeviceBridge::latency_samples() const { return hist_.count(); }
 
 int DeviceBridge::run(const std::atomic<bool>& stop) {
@@ -280,6 +301,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
   device::DeviceReading r;
   lcmt_device_state msg{};
   bool mirror_due = false;
+  publish_stats();   // at once: a coupler may be waiting for the device's limits before it starts
   while (!stop.load(std::memory_order_relaxed)) {
     const double t = now_s();
     r.grab_body = 0;   // a device that names no body or counts no presses leaves these at 0
@@ -344,6 +366,7 @@ int DeviceBridge::loop(const std::atomic<bool>& stop) {
     if (now_s() > next + 0.01) next = now_s();
     if (t >= next_report) {
       report_problems();
+      publish_stats();
       next_report = t + 1.0;
     }
     if (opt_.busy_poll && shm_feedback_) {

@@ -22,7 +22,7 @@
 #include "haptree/device/registry.hpp"
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
-#include "haptree/safety.hpp"
+#include "haptree/lcmt_process_stats.hpp"
 
 namespace haptree {
 
@@ -79,6 +79,12 @@ class DeviceBridge {
   const std::string& fault() const { return fault_; }
   // The force limit in use: --max-force-n, lowered to the device's own maximum if it reports a lower one.
   double max_force_n() const { return opt_.max_force_n; }
+  // What the device reported at open: model, limits (NaN where it reports none), buttons, axes.
+  const device::DeviceDescription& description() const { return desc_; }
+  // This bridge's health numbers and its device's reported limits (device/reported_limits.hpp), which
+  // run() publishes on HAPTREE_STATS_DEVICE_BRIDGE_<id> as it starts and then once a second: a coupler
+  // started with --device-limits-wait-s checks its gains against those limits.
+  lcmt_process_stats stats_message();
   // Largest change of the rendered force between two device ticks (N): what the hand feels as a jerk.
   double max_force_step_n() const { return max_force_step_n_.load(); }
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
@@ -96,6 +102,7 @@ class DeviceBridge {
   bool from_followed_coupler(const lcmt_feedback& m, double now_s);   // one writer per FEEDBACK channel
   void poll_shm_feedback();
   void report_problems();
+  void publish_stats();   // from run()'s thread only: one thread publishes (LCM's tcpq sends are not atomic)
   int loop(const std::atomic<bool>& stop);
   // Zero force and torque (ramped at the rate limit when `ramp`), force output off, device closed.
   void shut_device(bool ramp) noexcept;
@@ -108,11 +115,13 @@ class DeviceBridge {
   bus::Bus& bus_;
   DeviceBridgeOptions opt_;
   std::unique_ptr<device::Device> device_;
+  device::DeviceDescription desc_;
+  int64_t stats_seq_ = 0;
   std::unique_ptr<bus::ShmWriter> shm_state_;
   std::unique_ptr<bus::ShmReader> shm_feedback_;
   bus::LatestValue<lcmt_feedback> fb_box_;
   lcmt_feedback fb_{}, fb_shm_{}, fb_scratch_{};
-  std::string ch_state_, ch_feedback_;
+  std::string ch_state_, ch_feedback_, ch_stats_;
   // Device states written to shared memory, by seq: the mirror publishes the one a FEEDBACK answers.
   static constexpr int kStateRing = 256;
   std::array<lcmt_device_state, kStateRing> shm_states_{};

@@ -6,6 +6,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <mutex>
 #include <thread>
 
@@ -33,7 +34,9 @@ void for_each_body(const AssemblyTree& t, int node, std::vector<int>& stack, F&&
 
 }  // namespace
 
-AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
+AdaptiveData::AdaptiveData(const Model& m) : AdaptiveData(m, false) {}
+
+AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
   const auto& t = m.tree;
   const int nn = t.nnodes(), nb = m.nbodies;
   active.assign(nn, 0);
@@ -42,11 +45,8 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   X_R.assign(nn, Mat3::Identity());
   X_r.assign(nn, Vec3::Zero());
   fine_frontier.reserve(nn);
-  scratch_hn.assign(nn, Vec6::Zero());
   scratch_nodes.reserve(nn);
   scratch_joints.reserve(nb);
-  scratch_union.reserve(nn);
-  scan_loaded.reserve(nb);
   scratch_mark.assign(nn, 0);
   ref_body.assign(nn, -1);
   for (int node = nn - 1; node >= 0; --node)
@@ -57,20 +57,17 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   comp_ground.assign(nn, 0);
   local_R.assign(nb, Mat3::Identity());
   local_r.assign(nb, Vec3::Zero());
-  ref_velocity.assign(nn, Vec6::Zero());
-  pred_offset.assign(nb, Vec3::Zero());
-  inertia_form.assign(nn, 0);
-  if_bodies.reserve(nb);
-  if_top.assign(nb, 0);
   std::size_t phi = 0, vec = 0;
   for (int node = 0; node < nn; ++node) {
     const std::size_t h = t.handle_num[node];
     phi += 36 * h * h;
     vec += 6 * h;
   }
-  Psi_buf.assign(phi, 0.0);
-  p_buf.assign(vec, 0.0);
-  eta.assign(nn, 0.0);
+  if (!selection_only) {   // the worker borrows the stepping thread's set (lend_metric_scratch)
+    Psi_buf.assign(phi, 0.0);
+    p_buf.assign(vec, 0.0);
+    eta.assign(nn, 0.0);
+  }
   Phi_loc.assign(phi, 0.0);
   Psi_loc.assign(phi, 0.0);
   W_loc.assign(nn, Mat6::Zero());
@@ -82,12 +79,9 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   active_nodes.reserve(nn);
   frontier.reserve(nn);
   active_joints.reserve(nb);
-  loaded_bodies.reserve(nb);
   heap.reserve(nn);
   scratch_stack.reserve(nn);
   scratch_joint_active.assign(nb, 0);
-  scratch_h.assign(nb, Vec6::Zero());
-  kin_q.reserve(m.nq + m.nv);
   const int hm = std::max(1, t.max_handles);
   scratch_K.assign(hm, Mat6::Zero());
   scratch_U.assign(hm, Mat3::Zero());
@@ -95,6 +89,22 @@ AdaptiveData::AdaptiveData(const Model& m) : impulse(m) {
   scratch_Sk.assign(hm, Mat3::Zero());
   scratch_V.assign(hm, Mat6::Zero());
   scratch_Y.assign(static_cast<std::size_t>(hm + 1) * hm, Mat6::Zero());
+  if (selection_only) {
+    std::vector<Vec6>().swap(impulse.f_ext);
+    return;
+  }
+  // The hybrid pass, the handover and the impulsive lock (adaptive_step's thread only).
+  scratch_hn.assign(nn, Vec6::Zero());
+  scratch_union.reserve(nn);
+  scan_loaded.reserve(nb);
+  ref_velocity.assign(nn, Vec6::Zero());
+  pred_offset.assign(nb, Vec3::Zero());
+  inertia_form.assign(nn, 0);
+  if_bodies.reserve(nb);
+  if_top.assign(nb, 0);
+  loaded_bodies.reserve(nb);
+  scratch_h.assign(nb, Vec6::Zero());
+  kin_q.reserve(m.nq + m.nv);
 }
 
 // §8: Ψ, p, η bottom-up from the full-articulated coefficients held in `d`. With f^C the handle
@@ -204,13 +214,21 @@ void metric_node(const Model& m, const Data& d, AdaptiveData& ad, int node) {
 
 }  // namespace
 
+// Ψ, p, η in world axes (Psi_buf, p_buf, eta) are written by every selection before it reads
+// them, so the stepping thread lends its set to the worker for the selection in flight and takes
+// it back when the worker is done. This makes sure `ad` holds the set (waits for the worker if
+// need be; allocates only for a copy of an AdaptiveData whose set was lent).
+void ensure_metric_scratch(const Model& m, AdaptiveData& ad);
+
 void compute_metric_coefficients(const Model& m, const Data& d, AdaptiveData& ad) {
+  ensure_metric_scratch(m, ad);
   for (int node = m.tree.nnodes() - 1; node >= 0; --node) metric_node(m, d, ad, node);
 }
 
 double metric_value(const Model& m, const AdaptiveData& ad, int node, const double* f) {
   const int h = m.tree.handle_num[node];
   if (m.tree.is_leaf(node)) return 0;
+  if (ad.Psi_buf.empty()) return std::numeric_limits<double>::quiet_NaN();   // lent to the worker
   std::size_t adr = 0, vadr = 0;
   // Offsets match Data's layout (computed the same way).
   for (int n = 0; n < node; ++n) {
@@ -747,6 +765,7 @@ double select_core(const Model& m, Data& d, const State& st, AdaptiveData& ad,
 
 double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad,
                             const AdaptiveOptions& opt) {
+  ensure_metric_scratch(m, ad);
   int dofs = 0;
   const double neglected = select_core(m, d, st, ad, opt, dofs);
   build_region(m, d, st, ad);
@@ -1016,7 +1035,8 @@ const Eigen::VectorXd& adaptive_forward_dynamics(const Model& m, Data& d, const 
 // the *union* of both regions (fine level): no joint inside a union frontier node moves while the
 // old region is in force (V1), so those caches are still exact when the main thread installs them.
 struct AsyncSelector {
-  explicit AsyncSelector(const Model& model) : m(model), d(model), st(model), ad(model) {
+  explicit AsyncSelector(const Model& model)
+      : m(model), d(model, Refinement::kOff), st(model), ad(model, true) {
     const int nn = model.tree.nnodes(), nb = model.nbodies;
     in_active_nodes.reserve(nn);
     in_frontier.reserve(nn);
@@ -1092,10 +1112,118 @@ AsyncSelectorHandle::~AsyncSelectorHandle() { delete p; }
 
 namespace {
 
+void swap_metric_scratch(AdaptiveData& a, AdaptiveData& b) {
+  std::swap(a.Psi_buf, b.Psi_buf);
+  std::swap(a.p_buf, b.p_buf);
+  std::swap(a.eta, b.eta);
+}
+
+}  // namespace
+
+void ensure_metric_scratch(const Model& m, AdaptiveData& ad) {
+  if (!ad.Psi_buf.empty()) return;
+  if (AsyncSelector* w = ad.worker.p) {
+    adaptive_selection_wait(ad);   // the worker is done with it (its result stays to be judged)
+    if (!w->ad.Psi_buf.empty()) {
+      swap_metric_scratch(ad, w->ad);
+      return;
+    }
+  }
+  std::size_t phi = 0, vec = 0;
+  for (int node = 0; node < m.tree.nnodes(); ++node) {
+    const std::size_t h = m.tree.handle_num[node];
+    phi += 36 * h * h;
+    vec += 6 * h;
+  }
+  ad.Psi_buf.assign(phi, 0.0);
+  ad.p_buf.assign(vec, 0.0);
+  ad.eta.assign(m.tree.nnodes(), 0.0);
+}
+
+namespace {
+
+template <class T, class A>
+std::size_t heap_bytes(const std::vector<T, A>& v) { return v.capacity() * sizeof(T); }
+std::size_t heap_bytes(const Eigen::VectorXd& v) { return v.size() * sizeof(double); }
+
+}  // namespace
+
+std::vector<MemoryItem> memory_usage(const AdaptiveData& ad, const std::string& p) {
+  std::vector<MemoryItem> out;
+  auto add = [&](const char* name, std::size_t bytes) { out.push_back({p + name, bytes}); };
+  auto append = [&](std::vector<MemoryItem> items) { out.insert(out.end(), items.begin(), items.end()); };
+  add("active", heap_bytes(ad.active));
+  add("active_nodes", heap_bytes(ad.active_nodes));
+  add("frontier", heap_bytes(ad.frontier));
+  add("active_joints", heap_bytes(ad.active_joints));
+  add("frontier_of_body", heap_bytes(ad.frontier_of_body));
+  add("fine_frontier", heap_bytes(ad.fine_frontier));
+  add("coarse_of", heap_bytes(ad.coarse_of));
+  add("X_R", heap_bytes(ad.X_R));
+  add("X_r", heap_bytes(ad.X_r));
+  add("ref_body", heap_bytes(ad.ref_body));
+  add("comp_mass", heap_bytes(ad.comp_mass));
+  add("comp_com", heap_bytes(ad.comp_com));
+  add("comp_Ic", heap_bytes(ad.comp_Ic));
+  add("comp_ground", heap_bytes(ad.comp_ground));
+  add("local_R", heap_bytes(ad.local_R));
+  add("local_r", heap_bytes(ad.local_r));
+  add("ref_velocity", heap_bytes(ad.ref_velocity));
+  add("pred_offset", heap_bytes(ad.pred_offset));
+  add("inertia_form", heap_bytes(ad.inertia_form));
+  add("if_bodies", heap_bytes(ad.if_bodies));
+  add("if_top", heap_bytes(ad.if_top));
+  add("Psi_buf", heap_bytes(ad.Psi_buf));
+  add("p_buf", heap_bytes(ad.p_buf));
+  add("eta", heap_bytes(ad.eta));
+  add("Phi_loc", heap_bytes(ad.Phi_loc));
+  add("Psi_loc", heap_bytes(ad.Psi_loc));
+  add("W_loc", heap_bytes(ad.W_loc));
+  add("q_cached", heap_bytes(ad.q_cached));
+  add("node_moved", heap_bytes(ad.node_moved));
+  add("world_ok", heap_bytes(ad.world_ok));
+  add("scratch_joint_moved", heap_bytes(ad.scratch_joint_moved));
+  add("kin_q", heap_bytes(ad.kin_q));
+  add("keep_active_bodies", heap_bytes(ad.keep_active_bodies));
+  add("loaded_bodies", heap_bytes(ad.loaded_bodies));
+  add("scratch_K", heap_bytes(ad.scratch_K));
+  add("scratch_V", heap_bytes(ad.scratch_V));
+  add("scratch_Y", heap_bytes(ad.scratch_Y));
+  add("scratch_U", heap_bytes(ad.scratch_U));
+  add("scratch_Vb", heap_bytes(ad.scratch_Vb));
+  add("scratch_Sk", heap_bytes(ad.scratch_Sk));
+  add("scratch_f", heap_bytes(ad.scratch_f));
+  add("heap", heap_bytes(ad.heap));
+  add("scratch_stack", heap_bytes(ad.scratch_stack));
+  add("scratch_joint_active", heap_bytes(ad.scratch_joint_active));
+  add("scratch_h", heap_bytes(ad.scratch_h));
+  add("scratch_hn", heap_bytes(ad.scratch_hn));
+  add("scratch_nodes", heap_bytes(ad.scratch_nodes));
+  add("scratch_joints", heap_bytes(ad.scratch_joints));
+  add("scratch_union", heap_bytes(ad.scratch_union));
+  add("scan_loaded", heap_bytes(ad.scan_loaded));
+  add("scratch_mark", heap_bytes(ad.scratch_mark));
+  append(memory_usage(ad.impulse, p + "impulse."));
+  if (const AsyncSelector* w = ad.worker.p) {
+    append(memory_usage(w->d, "worker.Data."));
+    append(memory_usage(w->st, "worker.State."));
+    append(memory_usage(w->ad, "worker.AdaptiveData."));
+    out.push_back({"worker.in_active_nodes", heap_bytes(w->in_active_nodes)});
+    out.push_back({"worker.in_frontier", heap_bytes(w->in_frontier)});
+    out.push_back({"worker.loaded", heap_bytes(w->loaded)});
+    out.push_back({"worker.new_nodes", heap_bytes(w->new_nodes)});
+    out.push_back({"worker.new_joints", heap_bytes(w->new_joints)});
+  }
+  return out;
+}
+
+namespace {
+
 // Copies the state of this step (q, q̇, τ, the loaded bodies' f_ext) and the region in force to the
 // worker and starts it. O(nq + nv) copies (memcpy) plus O(|region| + |loaded|).
 void post_selection(const Model& m, const State& st, AdaptiveData& ad, const AdaptiveOptions& opt) {
   AsyncSelector& w = *ad.worker.p;
+  if (w.ad.Psi_buf.empty()) swap_metric_scratch(ad, w.ad);   // lent for this selection
   w.st.q = st.q;
   w.st.qd = st.qd;
   w.st.tau = st.tau;
@@ -1349,6 +1477,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
       }
       ad.report.interval = ad.interval;
     }
+    if (ad.Psi_buf.empty()) swap_metric_scratch(ad, w->ad);   // taken back
     w->status.store(AsyncSelector::kIdle, std::memory_order_release);
   }
   bool post = false;

@@ -108,6 +108,9 @@ struct AsyncSelectorHandle {
 // Per-run adaptive workspace, sized once from the Model.
 struct AdaptiveData {
   explicit AdaptiveData(const Model& model);
+  // selection_only: only what a selection and its frontier caches use (the background worker's
+  // copy): the buffers of the hybrid pass, the handover and the impulsive lock stay empty.
+  AdaptiveData(const Model& model, bool selection_only);
   // Active region.
   std::vector<char> active;            // (nnodes) internal node is active
   std::vector<int> active_nodes;       // ids ascending (top-down order)
@@ -144,7 +147,8 @@ struct AdaptiveData {
   std::vector<char> inertia_form;      // (nnodes)
   std::vector<int> if_bodies;
   std::vector<char> if_top;            // (nbodies)
-  // Metric coefficients (§8), full-articulated, from the last selection.
+  // Metric coefficients (§8), full-articulated, from the last selection. Lent to the background
+  // worker while a selection is in flight (the worker's copy has none of its own).
   std::vector<double> Psi_buf, p_buf;
   std::vector<double> eta;             // (nnodes)
   // Incremental metric (AdaptiveOptions::incremental_metric): Φ, Ψ (Data's Φ layout) and W of
@@ -212,6 +216,10 @@ inline int frontier_of(const AdaptiveData& ad, int k) {
 // otherwise. `model` must outlive `ad`.
 void start_background_selection(const Model& model, AdaptiveData& ad);
 
+// Heap memory of `ad`'s containers (prefix + name) and, once started, of the background worker's
+// Data, State, AdaptiveData and job buffers (names "worker." + ...). Capacity, not size.
+std::vector<MemoryItem> memory_usage(const AdaptiveData& ad, const std::string& prefix = "AdaptiveData.");
+
 // World pose of body k after an adaptive step, from its frontier node's reference body. O(1).
 inline void body_pose(const Data& d, const AdaptiveData& ad, int k, Mat3& R, Vec3& r) {
   const int f = ad.frontier_of_body[k];
@@ -238,7 +246,9 @@ bool adaptive_selection_wait(AdaptiveData& ad);
 
 // Acceleration metric coefficients (§8) of every node from a completed full DCA bottom-up pass.
 void compute_metric_coefficients(const Model& model, const Data& data, AdaptiveData& ad);
-// Metric value A(node, f) = fᵀΨf + fᵀp + η for handle forces f (6h).
+// Metric value A(node, f) = fᵀΨf + fᵀp + η for handle forces f (6h). NaN while a background
+// selection is in flight (the worker holds Ψ, p, η; adaptive_selection_wait, then the next
+// adaptive_step or select_active_region takes them back).
 double metric_value(const Model& model, const AdaptiveData& ad, int node, const double* f);
 
 // Full pass + metric + greedy selection (§9); sets the active region, zeroes q̇ of inactive joints

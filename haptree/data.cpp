@@ -10,7 +10,7 @@ State::State(const Model& model)
       tau(Eigen::VectorXd::Zero(model.nv)),
       f_ext(model.nbodies, Vec6::Zero()) {}
 
-Data::Data(const Model& model) {
+Data::Data(const Model& model, Refinement refine_mode) : refine(refine_mode) {
   const int nb = model.nbodies;
   const auto& t = model.tree;
   const int nn = t.nnodes();
@@ -56,16 +56,6 @@ Data::Data(const Model& model) {
   beta.assign(nn, Vec6::Zero());
   taut.assign(nn, Vec6::Zero());
   qdd = Eigen::VectorXd::Zero(model.nv);
-  refine_qdd = Eigen::VectorXd::Zero(model.nv);
-  refine_r = Eigen::VectorXd::Zero(model.nv);
-  refine_a.assign(nb, Vec6::Zero());
-  refine_f.assign(nb, Vec6::Zero());
-  refine_p.assign(nb, Vec6::Zero());
-  refine_c.assign(nb, Vec6::Zero());
-  refine_b_buf.assign(vec, 0.0);
-  refine_f_buf.assign(vec, 0.0);
-  refine_beta.assign(nn, Vec6::Zero());
-  refine_taut.assign(nn, Vec6::Zero());
   const int nc = model.ncluster_nodes;
   if (nc > 0) cluster_offset.assign(nb, Vec3::Zero());
   if (nc > 0) cluster_offset_lo.assign(nb, Vec3::Zero());
@@ -77,7 +67,6 @@ Data::Data(const Model& model) {
   cqa.assign(nc, Vec6::Zero());
   ca.assign(nc, Vec6::Zero());
   cb.assign(nc, Vec6::Zero());
-  for (auto* v : {&refine_cp, &refine_cpA, &refine_cqa, &refine_ca, &refine_cb}) v->assign(nc, Vec6::Zero());
   cluster_live.assign(nn, 0);
   leaf_adr.assign(nn, -1);
   leaf_side.assign(nn, 0);
@@ -91,6 +80,69 @@ Data::Data(const Model& model) {
   leaf_G.assign(nleaf, Mat6::Zero());
 
   dca_cut = parallel_cut(t, 1, 0);
+  if (refine != Refinement::kOff) size_refinement(model, *this);
+}
+
+void size_refinement(const Model& model, Data& d) {
+  const int nb = model.nbodies, nn = model.tree.nnodes(), nc = model.ncluster_nodes;
+  d.refine_qdd = Eigen::VectorXd::Zero(model.nv);
+  d.refine_r = Eigen::VectorXd::Zero(model.nv);
+  d.refine_a.assign(nb, Vec6::Zero());
+  d.refine_f.assign(nb, Vec6::Zero());
+  d.refine_p.assign(nb, Vec6::Zero());
+  d.refine_c.assign(nb, Vec6::Zero());
+  d.refine_b_buf.assign(d.b_buf.size(), 0.0);
+  d.refine_f_buf.assign(d.f_buf.size(), 0.0);
+  d.refine_beta.assign(nn, Vec6::Zero());
+  d.refine_taut.assign(nn, Vec6::Zero());
+  for (auto* v : {&d.refine_cp, &d.refine_cpA, &d.refine_cqa, &d.refine_ca, &d.refine_cb}) v->assign(nc, Vec6::Zero());
+}
+
+bool refinement_sized(const Model& model, const Data& d) {
+  return d.refine_a.size() == static_cast<std::size_t>(model.nbodies);
+}
+
+namespace {
+
+template <class T, class A>
+std::size_t heap_bytes(const std::vector<T, A>& v) { return v.capacity() * sizeof(T); }
+template <class T, int R, int C, int O, int MR, int MC>
+std::size_t heap_bytes(const Eigen::Matrix<T, R, C, O, MR, MC>& m) { return m.size() * sizeof(T); }
+
+}  // namespace
+
+std::vector<MemoryItem> memory_usage(const State& s, const std::string& p) {
+  return {{p + "q", heap_bytes(s.q)}, {p + "qd", heap_bytes(s.qd)}, {p + "tau", heap_bytes(s.tau)},
+          {p + "f_ext", heap_bytes(s.f_ext)}};
+}
+
+std::vector<MemoryItem> memory_usage(const Data& d, const std::string& p) {
+  std::vector<MemoryItem> out;
+  auto add = [&](const char* name, std::size_t bytes) { out.push_back({p + name, bytes}); };
+#define HAPTREE_MEM(x) add(#x, heap_bytes(d.x))
+  HAPTREE_MEM(R); HAPTREE_MEM(r); HAPTREE_MEM(d); HAPTREE_MEM(v); HAPTREE_MEM(S); HAPTREE_MEM(c);
+  HAPTREE_MEM(I); HAPTREE_MEM(Iinv); HAPTREE_MEM(f_total); HAPTREE_MEM(p_bias);
+  HAPTREE_MEM(kind); HAPTREE_MEM(Phi_buf); HAPTREE_MEM(Phi_adr); HAPTREE_MEM(b_buf); HAPTREE_MEM(f_buf);
+  HAPTREE_MEM(vec_adr); HAPTREE_MEM(W); HAPTREE_MEM(beta); HAPTREE_MEM(taut);
+  HAPTREE_MEM(cluster_offset); HAPTREE_MEM(cluster_offset_lo); HAPTREE_MEM(cM); HAPTREE_MEM(cMinv);
+  HAPTREE_MEM(cIA); HAPTREE_MEM(cp); HAPTREE_MEM(cpA); HAPTREE_MEM(cqa); HAPTREE_MEM(ca); HAPTREE_MEM(cb);
+  HAPTREE_MEM(cluster_live); HAPTREE_MEM(leaf_adr); HAPTREE_MEM(leaf_side); HAPTREE_MEM(leaf_F);
+  HAPTREE_MEM(leaf_G); HAPTREE_MEM(qdd); HAPTREE_MEM(refine_qdd); HAPTREE_MEM(refine_r);
+  HAPTREE_MEM(refine_a); HAPTREE_MEM(refine_f); HAPTREE_MEM(refine_p); HAPTREE_MEM(refine_c);
+  HAPTREE_MEM(refine_b_buf); HAPTREE_MEM(refine_f_buf); HAPTREE_MEM(refine_beta); HAPTREE_MEM(refine_taut);
+  HAPTREE_MEM(refine_cp); HAPTREE_MEM(refine_cpA); HAPTREE_MEM(refine_cqa); HAPTREE_MEM(refine_ca);
+  HAPTREE_MEM(refine_cb);
+  HAPTREE_MEM(refine_x.R); HAPTREE_MEM(refine_x.d); HAPTREE_MEM(refine_x.v); HAPTREE_MEM(refine_x.a);
+  HAPTREE_MEM(refine_x.f);
+  HAPTREE_MEM(dca_cut.lo); HAPTREE_MEM(dca_cut.hi); HAPTREE_MEM(dca_cut.top);
+#undef HAPTREE_MEM
+  return out;
+}
+
+std::size_t total_bytes(const std::vector<MemoryItem>& items) {
+  std::size_t s = 0;
+  for (const auto& i : items) s += i.bytes;
+  return s;
 }
 
 }  // namespace haptree

@@ -2,7 +2,9 @@
 // Data is sized once from the Model; nothing in a dynamics step allocates.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "haptree/assembly_tree.hpp"
@@ -45,7 +47,9 @@ using VecMap = Eigen::Map<Vec6>;
 using CVecMap = Eigen::Map<const Vec6>;
 
 struct Data {
-  explicit Data(const Model& model);
+  // `refine` sets Data::refine; Refinement::kOff leaves the refinement buffers unallocated (the
+  // background selection's copy, which runs no forward_dynamics) until set_refinement asks for them.
+  explicit Data(const Model& model, Refinement refine = Refinement::kDouble);
 
   // Kinematics (world axes). r_k is body k's origin = handle point of joint k.
   std::vector<Mat3> R;          // (nbodies) body rotation
@@ -110,7 +114,8 @@ struct Data {
   // included), the mixed-precision refinement of Wilkinson: q̈ converges to the solution for the
   // inputs as given, for 2–2.8× the plain pass. The node coefficients b, β, f, τ̃ and the cluster
   // vectors (the coupling snapshot's inputs) keep the plain pass's values; only q̈ is corrected.
-  // Set it with set_refinement (kExtended sizes its long-double buffers there, not in the pass).
+  // Set it with set_refinement (it sizes the buffers below there, not in the pass; a Data built with
+  // kOff and given another mode by assignment sizes them in its next forward_dynamics).
   Refinement refine = Refinement::kDouble;
   Eigen::VectorXd refine_qdd, refine_r;   // (nv) first solve, residual
   std::vector<Vec6> refine_a, refine_f;   // (nbodies) inverse dynamics: accelerations, forces
@@ -143,5 +148,20 @@ struct Data {
   VecMap f(int node, int slot) { return VecMap(f_buf.data() + vec_adr[node] + 6 * slot); }
   CVecMap f(int node, int slot) const { return CVecMap(f_buf.data() + vec_adr[node] + 6 * slot); }
 };
+
+// Heap memory a workspace holds, container by container (its capacity, not its size), for
+// memory reports (scaling_bench --memory). Names are prefix + the member's name.
+struct MemoryItem {
+  std::string name;
+  std::size_t bytes = 0;
+};
+// Sizes (allocates) the double-precision refinement buffers of `d`; set_refinement calls it, and
+// also sizes kExtended's long-double ones (refine_x) when asked for that mode.
+void size_refinement(const Model& model, Data& d);
+bool refinement_sized(const Model& model, const Data& d);
+
+std::vector<MemoryItem> memory_usage(const State& s, const std::string& prefix = "State.");
+std::vector<MemoryItem> memory_usage(const Data& d, const std::string& prefix = "Data.");
+std::size_t total_bytes(const std::vector<MemoryItem>& items);
 
 }  // namespace haptree

@@ -1501,12 +1501,16 @@ const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st
     dca_bottom_up(m, d, st);
     dca_top_down(m, d);
   }
-  if (d.refine != Refinement::kOff) refine_step(m, d, st);   // serial even after parallel passes
+  if (d.refine != Refinement::kOff) {   // serial even after parallel passes
+    if (!refinement_sized(m, d)) size_refinement(m, d);   // Data::refine assigned, not set_refinement
+    refine_step(m, d, st);
+  }
   return d.qdd;
 }
 
 void set_refinement(const Model& m, Data& d, Refinement r) {
   d.refine = r;
+  if (r != Refinement::kOff && !refinement_sized(m, d)) size_refinement(m, d);
   if (r == Refinement::kExtended) d.refine_x.resize(m.nbodies);
 }
 

@@ -42,8 +42,9 @@ void dca_top_down(const Model& model, Data& data) noexcept;
 // passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
 
-// Data::refine. kExtended sizes the long-double inverse-dynamics buffers (O(nbodies),
-// 480 bytes per body); call it before the pass, not in it.
+// Data::refine. Sizes the refinement buffers a Data built with Refinement::kOff lacks and, for
+// kExtended, the long-double inverse-dynamics buffers (O(nbodies), 480 bytes per body); call it
+// before the pass, not in it.
 void set_refinement(const Model& model, Data& data, Refinement r);
 
 // Threads for forward_dynamics. threads = 1: serial (the default). threads > 1: that

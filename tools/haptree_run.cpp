@@ -268,6 +268,10 @@ int main(int argc, char** argv) {
     se.user_devices = user_devices;
     se.session_key_file = session_key_file;
     se.json = json;
+    se.device_model = limits.model;
+    se.clamp_gains = limits.clamp;
+    se.device_damping_n_s_per_m = limits.physical_damping_n_s_per_m;
+    se.sim_dt_s = limits.sim_dt_s;
     return haptree::tools::run_processes(po, se, g_stop);
   }
   try {
@@ -286,26 +290,6 @@ int main(int argc, char** argv) {
     for (int u = 0; u < users; ++u) {
       const int b = std::max(1, (model.nbodies - 1) - u * (model.nbodies - 1) / (users + 1));
       bodies.push_back(b);
-      haptree::CouplerOptions co;
-      co.user = u;
-      co.device = u;
-      co.rate_hz = coupler_rate_hz;
-      co.busy_wait = false;   // threads share 2 cores with the sim: sleep-until pacing
-      co.stiffness = stiffness;
-      co.damping = damping;
-      co.position_scale = position_scale;
-      co.force_scale = force_scale;
-      co.max_force_n = max_force_n;
-      co.grab_body = b;
-      co.offset = d0.r[b] - position_scale * grab_m;
-      // A page's pointer may reach any atom (the browser device inverts the mapping): the glitch limit on
-      // device positions covers twice the scene's reach from the grabbed body, at least the 1 m default.
-      double reach = 0;
-      for (int k = 1; k < model.nbodies; ++k) reach = std::max(reach, (d0.r[k] - d0.r[b]).norm());
-      co.max_device_position_m = std::min(1e3, std::max(co.max_device_position_m, 2.0 * reach / position_scale));
-      co.model_fingerprint = model.fingerprint;   // refuse any other model on the bus
-      co.stale_after_s = stale_after_s;
-      couplers.push_back(std::make_unique<haptree::Coupler>(bus, co));
       haptree::DeviceBridgeOptions bo;
       bo.device = u;
       bo.kind = vl.port > 0 ? "browser" : "scripted";   // with a viewer the page can take the user over
@@ -326,6 +310,33 @@ int main(int argc, char** argv) {
         }
       }
       bridges.push_back(std::make_unique<haptree::DeviceBridge>(bus, bo));
+      haptree::CouplerOptions co;
+      co.user = u;
+      co.device = u;
+      co.rate_hz = coupler_rate_hz;
+      co.busy_wait = false;   // threads share 2 cores with the sim: sleep-until pacing
+      co.stiffness = stiffness;
+      co.damping = damping;
+      co.position_scale = position_scale;
+      co.force_scale = force_scale;
+      co.max_force_n = max_force_n;
+      co.grab_body = b;
+      co.offset = d0.r[b] - position_scale * grab_m;
+      // A page's pointer may reach any atom (the browser device inverts the mapping): the glitch limit on
+      // device positions covers twice the scene's reach from the grabbed body, at least the 1 m default.
+      double reach = 0;
+      for (int k = 1; k < model.nbodies; ++k) reach = std::max(reach, (d0.r[k] - d0.r[b]).norm());
+      co.max_device_position_m = std::min(1e3, std::max(co.max_device_position_m, 2.0 * reach / position_scale));
+      co.model_fingerprint = model.fingerprint;   // refuse any other model on the bus
+      co.stale_after_s = stale_after_s;
+      // The user's own device reported its limits at open: the gains are checked against them too.
+      if (!user_devices[static_cast<size_t>(u)].kind.empty()) {
+        const haptree::device::DeviceDescription d = bridges.back()->description();
+        if (!haptree::device::enforce_device_limits(limits, co.stiffness, co.damping, co.position_scale, co.force_scale,
+                                                    co.max_force_n, co.rate_hz, "haptree_run", &d))
+          return 2;
+      }
+      couplers.push_back(std::make_unique<haptree::Coupler>(bus, co));
     }
     spdlog::info("haptree_run: scene {} ({} bodies, {} DOF), {} user(s) pulling bodies {}, {}", so.scene,
                  model.nbodies - 1, model.nv, users, fmt::join(bodies, ","),

@@ -360,6 +360,15 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
                              "--offset", fmt::format("{},{},{}", o.x(), o.y(), o.z()), "--max-device-position-m",
                              fmt_d(reaches[static_cast<size_t>(u)])});
       if (shm) cpl.push_back("--shm");
+      const bool own_device =
+          static_cast<size_t>(u) < se.user_devices.size() && !se.user_devices[static_cast<size_t>(u)].kind.empty();
+      if (own_device) {   // the gains checked again against the limits the device reports
+        cpl.insert(cpl.end(), {"--device-limits-wait-s", "10", "--device-model", se.device_model, "--sim-dt-s",
+                               fmt_d(se.sim_dt_s)});
+        if (se.clamp_gains) cpl.push_back("--clamp-gains");
+        if (std::isfinite(se.device_damping_n_s_per_m))
+          cpl.insert(cpl.end(), {"--device-damping-n-s-per-m", fmt_d(se.device_damping_n_s_per_m)});
+      }
       const std::string cu = "coupler_" + std::to_string(u);
       children.push_back({cu, log_dir + "/" + cu + ".log"});
       children.back().pid = spawn(cpl, children.back().log);

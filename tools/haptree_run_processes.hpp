@@ -2,6 +2,7 @@
 // `haptree_run --processes`: the launcher's session with the real sim_server, coupler and device_bridge
 // executables as child processes on this host (docs/processes.md).
 #include <atomic>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,12 @@ struct SessionOptions {
   // Each user's device (one per user): kind "" = the scripted pull (or the page's browser device);
   // otherwise a registry kind (device_bridge --device-kind) with its key=value options.
   std::vector<bus::UserDevice> user_devices;
+  // The gain check's options (--device-model, --clamp-gains, ...): the coupler of each user with an own
+  // device runs the check again against the limits its device_bridge reports at open.
+  std::string device_model = "simulated";
+  bool clamp_gains = false;
+  double device_damping_n_s_per_m = std::numeric_limits<double>::quiet_NaN();   // NaN: the table's
+  double sim_dt_s = 1e-3;
   std::string session_key_file;   // "" = none (or $HAPTREE_SESSION_KEY_FILE, which the children inherit)
   bool json = false;              // status as one JSON object per line
 };

@@ -666,5 +666,45 @@ TEST(AdaptiveBackground, NoStepAfterTheFirstVisitsTheWholeTree) {
   }
 }
 
+// The background worker holds only what a selection reads: none of the refinement, hybrid-pass,
+// handover or impulsive-lock buffers (byte counts, not timings); and a Data built without the
+// refinement buffers computes, once refinement is asked for, bit for bit the default Data's q̈.
+TEST(AdaptiveMemory, WorkerHoldsOnlyTheSelectionsBuffers) {
+  auto m = scene("binary_tree", 255, 1, false);
+  AdaptiveData ad(*m);
+  start_background_selection(*m, ad);
+  std::size_t worker_phi = 0;
+  int worker_items = 0;
+  for (const MemoryItem& i : memory_usage(ad)) {
+    if (i.name.rfind("worker.", 0) != 0) continue;
+    ++worker_items;
+    if (i.name == "worker.Data.Phi_buf") worker_phi = i.bytes;
+    for (const char* unused : {"refine_", "scratch_hn", "ref_velocity", "pred_offset", "impulse.f_ext",
+                               "scratch_h", "inertia_form", "if_top", "kin_q"})
+      if (i.name.find(unused) != std::string::npos) EXPECT_EQ(i.bytes, 0u) << i.name;
+    for (const char* lent : {"worker.AdaptiveData.Psi_buf", "worker.AdaptiveData.p_buf", "worker.AdaptiveData.eta"})
+      if (i.name == lent) EXPECT_EQ(i.bytes, 0u) << i.name;   // no selection in flight: the lender holds them
+  }
+  EXPECT_GT(worker_items, 50);
+  std::size_t phi = 0;
+  for (int node = 0; node < m->tree.nnodes(); ++node)
+    phi += 36 * sizeof(double) * m->tree.handle_num[node] * m->tree.handle_num[node];
+  EXPECT_EQ(worker_phi, phi);
+
+  State st = random_state(*m, 5);
+  Data full(*m), lean(*m, Refinement::kOff), assigned(*m, Refinement::kOff);
+  for (const MemoryItem& i : memory_usage(lean))
+    if (i.name.find("refine_") != std::string::npos) EXPECT_EQ(i.bytes, 0u) << i.name;
+  EXPECT_LT(total_bytes(memory_usage(lean)), total_bytes(memory_usage(full)));
+  set_refinement(*m, lean, Refinement::kDouble);
+  assigned.refine = Refinement::kDouble;   // sized by the next pass
+  const Eigen::VectorXd q0 = forward_dynamics(*m, full, st);
+  const Eigen::VectorXd q1 = forward_dynamics(*m, lean, st);
+  const Eigen::VectorXd q2 = forward_dynamics(*m, assigned, st);
+  EXPECT_TRUE((q0.array() == q1.array()).all());
+  EXPECT_TRUE((q0.array() == q2.array()).all());
+  EXPECT_EQ(total_bytes(memory_usage(lean)), total_bytes(memory_usage(full)));
+}
+
 }  // namespace
 }  // namespace haptree

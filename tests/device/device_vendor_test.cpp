@@ -5,20 +5,14 @@
 // Checked: poses in metres with the right axes, forces in newtons within the device's maximum, grab and
 // clutch, no force before the first FEEDBACK, zero force written last (then force off, then closed) on
 // every fault, a clear line and exit 1 when the library, a symbol or the device is missing, --probe.
-#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <signal.h>
-#include <spawn.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
-#include <chrono>
-#include <cstring>
 #include <cmath>
-#include <fstream>
-#include <map>
+#include <memory>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -31,123 +25,13 @@
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/spatial.hpp"
+#include "tests/device/vendor_test_util.hpp"
 #include "tools/tcpq_hub.hpp"
-
-extern char** environ;
 
 namespace haptree {
 namespace {
 
-using Env = std::map<std::string, std::string>;
-
-double unix_now() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-}
-void sleep_s(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
-
-// Spawns argv with the environment plus `env`, stdout+stderr to `log`.
-pid_t spawn(const std::vector<std::string>& args, const Env& env, const std::string& log) {
-  std::vector<std::string> envs;
-  for (char** e = environ; *e; ++e)
-    if (std::strncmp(*e, "FAKE_HAPTIC_", 12) != 0) envs.push_back(*e);
-  for (const auto& kv : env) envs.push_back(kv.first + "=" + kv.second);
-  std::vector<char*> argv, envp;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  for (const auto& e : envs) envp.push_back(const_cast<char*>(e.c_str()));
-  envp.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  pid_t pid = -1;
-  if (posix_spawn(&pid, argv[0], &fa, nullptr, argv.data(), envp.data()) != 0) pid = -1;
-  posix_spawn_file_actions_destroy(&fa);
-  return pid;
-}
-
-// Waits up to timeout_s; exit code, 128 + signal, or -1 (still running: killed).
-int reap(pid_t p, double timeout_s = 10) {
-  int st = 0;
-  for (double t = 0; t < timeout_s; t += 0.01) {
-    if (::waitpid(p, &st, WNOHANG) == p) return WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-    sleep_s(0.01);
-  }
-  ::kill(p, SIGKILL);
-  ::waitpid(p, &st, 0);
-  return -1;
-}
-
-std::string slurp(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
-
-// One line of the fake's log.
-struct Event {
-  double t = 0;
-  std::string what;   // open, close, enable, disable, force, force_off, error
-  double v[6] = {0, 0, 0, 0, 0, 0};
-  bool is_force() const { return what == "force" || what == "force_off"; }
-  double norm() const { return std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
-  double torque_norm() const { return std::sqrt(v[3] * v[3] + v[4] * v[4] + v[5] * v[5]); }
-};
-std::vector<Event> read_log(const std::string& path) {
-  std::vector<Event> out;
-  std::ifstream in(path);
-  std::string line;
-  while (std::getline(in, line)) {
-    std::istringstream ls(line);
-    Event e;
-    ls >> e.t >> e.what;
-    for (double& x : e.v)
-      if (!(ls >> x)) break;
-    out.push_back(e);
-  }
-  return out;
-}
-
-// The fail-safe ending every run must have: a zero force (and torque) is the last force written, then
-// force output off, then the device closed; and a nonzero force was written before (else the check
-// would prove nothing).
-void expect_zero_last_then_off_then_closed(const std::vector<Event>& ev) {
-  ASSERT_FALSE(ev.empty());
-  int last_force = -1, last_nonzero = -1, last_disable = -1, last_close = -1;
-  for (int i = 0; i < static_cast<int>(ev.size()); ++i) {
-    if (ev[i].is_force()) last_force = i;
-    if (ev[i].is_force() && (ev[i].norm() > 0 || ev[i].torque_norm() > 0)) last_nonzero = i;
-    if (ev[i].what == "disable") last_disable = i;
-    if (ev[i].what == "close") last_close = i;
-  }
-  ASSERT_GE(last_nonzero, 0) << "no force was ever rendered: the ending proves nothing";
-  ASSERT_GE(last_force, 0);
-  EXPECT_EQ(ev[last_force].norm(), 0.0) << "the last force written is not zero";
-  EXPECT_EQ(ev[last_force].torque_norm(), 0.0) << "the last torque written is not zero";
-  EXPECT_GT(last_disable, last_nonzero) << "force output not turned off after the last force";
-  ASSERT_GE(last_close, 0) << "the device was not closed";
-  EXPECT_GT(last_close, last_disable);
-  for (size_t i = last_close + 1; i < ev.size(); ++i)
-    EXPECT_EQ(ev[i].what, "error") << "the device was used after it was closed";   // a vendor error read at close
-}
-
-// No force is rendered before the first FEEDBACK: every force before the first "enable" is zero, and
-// that enable comes after `first_feedback_t` (unix time).
-void expect_no_force_before_feedback(const std::vector<Event>& ev, double first_feedback_t) {
-  bool enabled = false;
-  double t_enable = -1;
-  for (const auto& e : ev) {
-    if (e.what == "disable" && !enabled) continue;
-    if (e.what == "enable") {
-      enabled = true;
-      if (t_enable < 0) t_enable = e.t;
-    }
-    if (!enabled && e.is_force()) ASSERT_EQ(e.norm(), 0.0) << "force written before force output was enabled";
-  }
-  ASSERT_GT(t_enable, 0) << "force output never enabled";
-  EXPECT_GE(t_enable, first_feedback_t) << "force output enabled before the first FEEDBACK";
-}
+using namespace vendor_test;
 
 // The coupler's side of the link: DEVICE_STATE in, FEEDBACK out at 1 kHz while a force is set.
 class FakeCoupler {
@@ -256,19 +140,7 @@ struct Session {
     return rc;
   }
   std::string log() const { return slurp(bridge_log); }
-  // The fake's log once the device is closed (up to 2 s: one run in about a dozen under heavy load read
-  // it before the last lines were there, with the bridge already reaped; not understood yet).
-  std::vector<Event> events() const {
-    std::vector<Event> ev = read_log(force_log);
-    auto closed = [](const std::vector<Event>& v) {
-      return std::any_of(v.begin(), v.end(), [](const Event& e) { return e.what == "close"; });
-    };
-    for (int i = 0; i < 200 && !closed(ev); ++i) {
-      sleep_s(0.01);
-      ev = read_log(force_log);
-    }
-    return ev;
-  }
+  std::vector<Event> events() const { return read_log_until_closed(force_log); }
 };
 
 std::vector<std::string> hd_args(std::vector<std::string> extra = {}) {
@@ -366,6 +238,105 @@ TEST(DeviceVendor, ForceDimensionAxesMappedToTheViewAndTorqueOnAnActiveWrist) {
   EXPECT_NEAR(steady->v[4], 0.1, 1e-12);
   EXPECT_NEAR(steady->v[5], 0.0, 1e-12);
   expect_zero_last_then_off_then_closed(ev);
+}
+
+TEST(DeviceVendor, OpenHapticsSixDofWritesTorqueInMilliNewtonMetresWithinTheLimit) {
+  // A Premium-6DOF-like fake (HD_OUTPUT_DOF 6): torque in mN m along the HD axes (= haptree's), clamped
+  // to the 6-DOF torque limit the HD API does not report (the device table's Premium 6DOF, 0.188 N m).
+  Session s("hd_6dof", hd_args({"--feedback-timeout-s", "0.5"}), {{"FAKE_HAPTIC_DOF", "6"}});
+  ASSERT_GT(s.pid, 0);
+  ASSERT_TRUE(s.coupler->wait_states(10)) << s.log();
+  const double t_fb = s.coupler->feedback(Vec3(0.5, 0, 0), Vec3(0.1, -0.05, 0.02));
+  sleep_s(0.5);
+  const double t_big = s.coupler->feedback(Vec3(0.5, 0, 0), Vec3(0, 0, 1.0));
+  sleep_s(0.4);
+  EXPECT_EQ(s.stop(), 0) << s.log();
+  const auto ev = s.events();
+  expect_no_force_before_feedback(ev, t_fb);
+  const Event* steady = max_force_between(ev, t_fb, t_big);
+  ASSERT_NE(steady, nullptr);
+  double steady_tau[3] = {0, 0, 0};   // the largest torque written while (0.1, -0.05, 0.02) N m was asked
+  for (const auto& e : ev)
+    if (e.is_force() && e.t > t_fb && e.t < t_big && e.torque_norm() > Vec3(steady_tau[0], steady_tau[1], steady_tau[2]).norm())
+      for (int i = 0; i < 3; ++i) steady_tau[i] = e.v[3 + i];
+  EXPECT_NEAR(steady_tau[0], 100.0, 1e-9);
+  EXPECT_NEAR(steady_tau[1], -50.0, 1e-9);
+  EXPECT_NEAR(steady_tau[2], 20.0, 1e-9);
+  double tau_max = 0, tau_z_max = 0;
+  for (const auto& e : ev) {
+    tau_max = std::max(tau_max, e.torque_norm());
+    if (e.t > t_big) tau_z_max = std::max(tau_z_max, e.v[5]);
+  }
+  EXPECT_LE(tau_max, 188.0 + 1e-9) << "a torque above the 6-DOF limit was written";
+  EXPECT_NEAR(tau_z_max, 188.0, 1e-9) << "1 N m asked: written at the limit, 0.188 N m";
+  expect_zero_last_then_off_then_closed(ev);
+  // The same command on a 3-DOF device: no torque is ever written.
+  Session s3("hd_3dof", hd_args({"--feedback-timeout-s", "0.5"}), {});
+  ASSERT_GT(s3.pid, 0);
+  ASSERT_TRUE(s3.coupler->wait_states(10)) << s3.log();
+  s3.coupler->feedback(Vec3(0.5, 0, 0), Vec3(0.1, -0.05, 0.02));
+  sleep_s(0.3);
+  EXPECT_EQ(s3.stop(), 0) << s3.log();
+  double f3 = 0, tau3 = 0;
+  for (const auto& e : s3.events()) f3 = std::max(f3, e.norm()), tau3 = std::max(tau3, e.torque_norm());
+  EXPECT_NEAR(f3, 0.5, 1e-12);
+  EXPECT_EQ(tau3, 0.0) << "torque written to a 3-DOF device";
+}
+
+TEST(DeviceVendor, OpenHapticsAutoCalibrationIsAppliedBeforeForceOutput) {
+  // hdCheckCalibration: HD_CALIBRATION_NEEDS_UPDATE; the device's style is HD_CALIBRATION_AUTO, so the
+  // driver calls hdUpdateCalibration(HD_CALIBRATION_AUTO) in the servo loop, and forces work after it.
+  Session s("hd_cal_update", hd_args({"--feedback-timeout-s", "0.5"}), {{"FAKE_HAPTIC_CALIBRATION", "update"}});
+  ASSERT_GT(s.pid, 0);
+  ASSERT_TRUE(s.coupler->wait_states(10)) << s.log();
+  const double t_fb = s.coupler->feedback(Vec3(0.5, 0, 0));
+  sleep_s(0.3);
+  EXPECT_EQ(s.stop(), 0) << s.log();
+  const auto ev = s.events();
+  int calibrate = -1, enable = -1, calibrations = 0;
+  for (int i = 0; i < static_cast<int>(ev.size()); ++i) {
+    if (ev[i].what == "calibrate") {
+      ++calibrations;
+      if (calibrate < 0) calibrate = i;
+      EXPECT_EQ(ev[i].v[0], 2.0) << "hdUpdateCalibration with a style other than HD_CALIBRATION_AUTO";
+    }
+    if (ev[i].what == "enable" && enable < 0) enable = i;
+  }
+  ASSERT_GE(calibrate, 0) << "hdUpdateCalibration was never called";
+  EXPECT_EQ(calibrations, 1) << "calibrated again although the device said it was calibrated";
+  ASSERT_GE(enable, 0) << s.log();
+  EXPECT_LT(calibrate, enable);
+  expect_no_force_before_feedback(ev, t_fb);
+  expect_zero_last_then_off_then_closed(ev);
+}
+
+TEST(DeviceVendor, OpenHapticsDeviceNeedingCalibrationByHandIsRefusedWithOneLine) {
+  // HD_CALIBRATION_NEEDS_MANUAL_INPUT (the stylus never goes into its inkwell): poses still flow, but at
+  // the first FEEDBACK the bridge refuses to turn force output on: exit 3, one line saying why, and the
+  // device never rendered a force.
+  Session s("hd_cal_manual", hd_args(), {{"FAKE_HAPTIC_CALIBRATION", "manual"}});
+  ASSERT_GT(s.pid, 0);
+  ASSERT_TRUE(s.coupler->wait_states(10)) << s.log();
+  s.coupler->feedback(Vec3(1.0, 0, 0));
+  EXPECT_EQ(reap(s.pid, 5), 3) << s.log();
+  const std::string log = s.log();
+  int lines_why = 0;
+  std::istringstream in(log);
+  for (std::string line; std::getline(in, line);)
+    lines_why += line.find("needs calibration by hand") != std::string::npos;
+  EXPECT_EQ(lines_why, 1) << log;
+  EXPECT_NE(log.find("put the stylus in its inkwell"), std::string::npos) << log;
+  const auto ev = s.events();
+  bool closed = false;
+  for (const auto& e : ev) {
+    EXPECT_NE(e.what, "enable") << "force output turned on for an uncalibrated device";
+    EXPECT_NE(e.what, "calibrate") << "a device that needs calibration by hand was not asked for it";
+    if (e.is_force()) {
+      EXPECT_EQ(e.norm(), 0.0);
+    }
+    closed |= e.what == "close";
+  }
+  EXPECT_TRUE(closed);
 }
 
 TEST(DeviceVendor, GrabCountsPressesAndClutchIndexesTheWorkspace) {
@@ -550,7 +521,9 @@ TEST(DeviceVendor, ProbePrintsModelSerialLimitsPositionButtonsAndRendersNoForce)
     EXPECT_NE(r.out.find(want), std::string::npos) << want << "\n" << r.out;
   for (const auto& e : read_log(flog)) {
     EXPECT_NE(e.what, "enable") << "--probe turned force output on";
-    if (e.is_force()) EXPECT_EQ(e.norm(), 0.0);
+    if (e.is_force()) {
+      EXPECT_EQ(e.norm(), 0.0);
+    }
   }
   // Force Dimension, found by its default name on the loader path (libdrd.so.3 absent, libdhd.so.3 found).
   r = run({"--device-kind", "forcedimension", "--probe"},

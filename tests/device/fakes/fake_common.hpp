@@ -2,14 +2,17 @@
 // follows a schedule), buttons on a schedule, injectable faults, and a log of every force written.
 // Configured by environment variables, read when the device is opened:
 //   FAKE_HAPTIC_LOG      file; one line per event, "<unix time s> <event> ...":
-//                        open, close, enable, disable, force fx fy fz tx ty tz (vendor units), error CODE
+//                        open, close, enable, disable, force fx fy fz tx ty tz (vendor units), error CODE,
+//                        calibrate STYLE (libHD)
 //   FAKE_HAPTIC_PATH     "t:x,y,z;t:x,y,z;..." rest point (vendor units) from time t (s after open)
 //   FAKE_HAPTIC_BUTTONS  "t:mask;t:mask;..." button bits from time t
 //   FAKE_HAPTIC_FAULT    dead (no device) | error@T (vendor error code from T) | stop@T (the servo
 //                        callback is no longer called from T; libHD only) | nan@T (non-finite position)
 //   FAKE_HAPTIC_TYPE     libdhd: the system type dhdGetSystemType reports (default 33, omega.3)
 //   FAKE_HAPTIC_DOF      libHD: HD_OUTPUT_DOF (default 3; 6 renders torque)
-//   FAKE_HAPTIC_CALIBRATION  libHD: ok (default) | manual (hdCheckCalibration: needs manual input)
+//   FAKE_HAPTIC_MAX_FORCE  libHD: HD_NOMINAL_MAX_FORCE, N (default 3.3, a Touch's)
+//   FAKE_HAPTIC_CALIBRATION  libHD: ok (default) | manual (hdCheckCalibration: needs manual input, for
+//                        ever) | update (needs an update until hdUpdateCalibration(HD_CALIBRATION_AUTO))
 // Test code: plain and direct, async-signal-safe where the drivers' emergency stop calls in.
 #pragma once
 

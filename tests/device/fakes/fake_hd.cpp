@@ -32,7 +32,10 @@ struct Scheduled {
 Scheduled g_cb[4];
 double g_force[3] = {0, 0, 0}, g_torque[3] = {0, 0, 0};
 int g_dof = 3;
-bool g_manual_calibration = false;
+double g_max_force = 3.3;   // HD_NOMINAL_MAX_FORCE (N)
+// hdCheckCalibration's answer: HD_CALIBRATION_OK, _NEEDS_UPDATE (until hdUpdateCalibration with the
+// device's style, HD_CALIBRATION_AUTO) or _NEEDS_MANUAL_INPUT (never cleared: nobody puts the stylus in).
+std::atomic<unsigned int> g_calibration{0x5000};
 
 void set_error(unsigned int code) {
   unsigned int expected = 0;
@@ -67,8 +70,10 @@ unsigned int hdInitDevice(const char* name) {
   g_mech.open_from_env(1000.0);   // mm
   const char* dof = std::getenv("FAKE_HAPTIC_DOF");
   g_dof = dof ? std::atoi(dof) : 3;
+  const char* fmax = std::getenv("FAKE_HAPTIC_MAX_FORCE");
+  g_max_force = fmax ? std::atof(fmax) : 3.3;
   const char* cal = std::getenv("FAKE_HAPTIC_CALIBRATION");
-  g_manual_calibration = cal && std::strcmp(cal, "manual") == 0;
+  g_calibration = !cal ? 0x5000 : std::strcmp(cal, "manual") == 0 ? 0x5002 : std::strcmp(cal, "update") == 0 ? 0x5001 : 0x5000;
   if (g_mech.fault.kind == fake::Fault::kDead || (name && std::strcmp(name, "no such device") == 0)) {
     set_error(0x0302);   // HD_COMM_ERROR
     return 0xFFFFFFFFu;  // HD_INVALID_HANDLE
@@ -117,7 +122,7 @@ void hdGetDoublev(unsigned int what, double* v) {
       v[15] = 1;
       break;
     }
-    case 0x2603: *v = 3.3; break;     // HD_NOMINAL_MAX_FORCE (N)
+    case 0x2603: *v = g_max_force; break;   // HD_NOMINAL_MAX_FORCE (N)
     case 0x2604: *v = 0.88; break;    // HD_NOMINAL_MAX_CONTINUOUS_FORCE (N)
     case 0x2602: *v = 0.4; break;     // HD_NOMINAL_MAX_STIFFNESS (N/mm)
     case 0x2609: *v = 0.004; break;   // HD_NOMINAL_MAX_DAMPING (N s/mm)
@@ -209,7 +214,13 @@ void hdUnschedule(unsigned long h) {
   if (h >= 1 && h <= 4) g_cb[h - 1].fn.store(nullptr);
 }
 
-unsigned int hdCheckCalibration() { return g_manual_calibration ? 0x5002 : 0x5000; }
-void hdUpdateCalibration(unsigned int) {}
+unsigned int hdCheckCalibration() { return g_calibration.load(); }
+void hdUpdateCalibration(unsigned int style) {
+  const double s = style;
+  g_mech.log("calibrate", &s, 1);
+  if (style != (1 << 1)) return set_error(0x0100);   // the fake's only style is HD_CALIBRATION_AUTO
+  unsigned int needs = 0x5001;
+  g_calibration.compare_exchange_strong(needs, 0x5000);
+}
 
 }  // extern "C"

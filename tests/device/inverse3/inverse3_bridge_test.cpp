@@ -2,9 +2,7 @@
 // hub on 127.0.0.1 (no network, no root). The test plays the coupler: it reads DEVICE_STATE and
 // publishes FEEDBACK; the fake logs every force the bridge's device sent.
 #include <gtest/gtest.h>
-#include <netinet/in.h>
 #include <signal.h>
-#include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -25,6 +23,7 @@
 #include "haptree/lcmt_device_state.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "tests/device/inverse3/fake_inverse_service.hpp"
+#include "tests/device/vendor_test_util.hpp"
 #include "tests/integration/spawn.hpp"
 #include "tools/tcpq_hub.hpp"
 
@@ -35,41 +34,9 @@ using testing::FakeFault;
 using testing::FakeInverseOptions;
 using testing::FakeInverseService;
 using Clock = std::chrono::steady_clock;
-
-void sleep_s(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
-
-// A port nothing listens on: bound, read, closed.
-int free_port() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a);
-  socklen_t n = sizeof a;
-  ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &n);
-  ::close(fd);
-  return ntohs(a.sin_port);
-}
-
-std::string slurp(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
-bool exited_within(pid_t p, double seconds, int* rc) {
-  const auto end = Clock::now() + std::chrono::duration<double>(seconds);
-  int st = 0;
-  while (Clock::now() < end) {
-    if (::waitpid(p, &st, WNOHANG) == p) {
-      *rc = WIFEXITED(st) ? WEXITSTATUS(st) : 128 + WTERMSIG(st);
-      return true;
-    }
-    sleep_s(0.01);
-  }
-  return false;
-}
+using vendor_test::free_port;
+using vendor_test::sleep_s;
+using vendor_test::slurp;
 
 // The fake reads the bridge's last bytes on its own thread: after the bridge has exited, wait (up to 2 s)
 // until its WebSocket is closed there, which comes after the last command on the same socket.
@@ -238,7 +205,7 @@ TEST(Inverse3Bridge, PosesInMetresForcesInNewtonsWithinTheMaxZeroLast) {
   // SIGTERM: the bridge ramps down and closes; the service's last command is a zero force.
   int rc = -1;
   ::kill(s.pid, SIGTERM);
-  ASSERT_TRUE(exited_within(s.pid, 5.0, &rc)) << slurp(s.log);
+  ASSERT_TRUE((rc = vendor_test::reap(s.pid, 5.0)) != -1) << slurp(s.log);
   s.pid = -1;
   EXPECT_EQ(rc, 0) << slurp(s.log);
   wait_closed(s.svc);
@@ -265,7 +232,7 @@ TEST(Inverse3Bridge, CommLossEndsWithZeroForceAndExit3) {
     s.coupler.set_force(Vec3(1, 0, 0));
     s.coupler.start_feedback();
     int rc = -1;
-    ASSERT_TRUE(exited_within(s.pid, 8.0, &rc)) << c.second << "\n" << slurp(s.log);
+    ASSERT_TRUE((rc = vendor_test::reap(s.pid, 8.0)) != -1) << c.second << "\n" << slurp(s.log);
     s.pid = -1;
     EXPECT_EQ(rc, 3) << slurp(s.log);
     const std::string out = slurp(s.log);
@@ -297,7 +264,7 @@ TEST(Inverse3Bridge, Probe) {
       {HAPTREE_DEVICE_BRIDGE, "--device-kind", "inverse3", "--probe", "--device-option", "url=" + svc.url()}, log);
   ASSERT_GT(p, 0);
   int rc = -1;
-  ASSERT_TRUE(exited_within(p, 10.0, &rc));
+  ASSERT_TRUE((rc = vendor_test::reap(p, 10.0)) != -1);
   const std::string out = slurp(log);
   EXPECT_EQ(rc, 0) << out;
   wait_closed(svc);
@@ -318,7 +285,7 @@ TEST(Inverse3Bridge, ServiceNotRunningOneLineExit1) {
                                         log);
   ASSERT_GT(p, 0);
   int rc = -1;
-  ASSERT_TRUE(exited_within(p, 10.0, &rc));
+  ASSERT_TRUE((rc = vendor_test::reap(p, 10.0)) != -1);
   EXPECT_EQ(rc, 1);
   const std::string out = slurp(log);
   int lines = 0, about = 0;

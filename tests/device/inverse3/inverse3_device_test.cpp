@@ -1,8 +1,6 @@
 // The inverse3 device in this process against the fake Inverse Service: axes, units, the protocol's
 // dialects, the link checks, and a zero force as the last command.
 #include <gtest/gtest.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -13,6 +11,7 @@
 #include "haptree/device/inverse3.hpp"
 #include "haptree/device/registry.hpp"
 #include "tests/device/inverse3/fake_inverse_service.hpp"
+#include "tests/device/vendor_test_util.hpp"
 
 namespace haptree::device {
 namespace {
@@ -21,20 +20,8 @@ using testing::FakeFault;
 using testing::FakeInverseOptions;
 using testing::FakeInverseService;
 
-void sleep_s(double s) { std::this_thread::sleep_for(std::chrono::duration<double>(s)); }
-
-// A port nothing listens on: bound, read, closed.
-int free_port() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a);
-  socklen_t n = sizeof a;
-  ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &n);
-  ::close(fd);
-  return ntohs(a.sin_port);
-}
+using vendor_test::free_port;
+using vendor_test::sleep_s;
 
 std::unique_ptr<Device> make(const std::string& url, std::map<std::string, std::string> extra = {}) {
   DeviceConfig c;
