@@ -23,6 +23,8 @@
 #include <thread>
 #include <vector>
 
+#include "tests/integration/spawn.hpp"
+
 extern char** environ;
 
 namespace haptree::vendor_test {
@@ -41,19 +43,10 @@ inline pid_t spawn(const std::vector<std::string>& args, const Env& env, const s
   for (char** e = environ; *e; ++e)
     if (std::strncmp(*e, "FAKE_HAPTIC_", 12) != 0) envs.push_back(*e);
   for (const auto& kv : env) envs.push_back(kv.first + "=" + kv.second);
-  std::vector<char*> argv, envp;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
+  std::vector<char*> envp;
   for (const auto& e : envs) envp.push_back(const_cast<char*>(e.c_str()));
   envp.push_back(nullptr);
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-  posix_spawn_file_actions_adddup2(&fa, 1, 2);
-  pid_t pid = -1;
-  if (posix_spawn(&pid, argv[0], &fa, nullptr, argv.data(), envp.data()) != 0) pid = -1;
-  posix_spawn_file_actions_destroy(&fa);
-  return pid;
+  return testing::spawn_logged(args, log, /*search_path=*/false, envp.data());
 }
 
 // Waits up to timeout_s; exit code, 128 + signal, or -1 (still running: killed and reaped).
