@@ -130,14 +130,15 @@ pid=\$!
 python3 - <<'PY'
 import time, urllib.error, urllib.request
 for path, must in (("/", b"<html"), ("/vendor/ngl.js", b"NGL")):
-    for _ in range(100):
+    deadline = time.time() + 60   # the launcher loads its molecule first: slow on a loaded machine
+    while True:
         try:
-            body = urllib.request.urlopen("http://127.0.0.1:$PORT" + path + "?token=$TOKEN", timeout=2).read()
+            body = urllib.request.urlopen("http://127.0.0.1:$PORT" + path + "?token=$TOKEN", timeout=5).read()
             break
         except OSError:
-            time.sleep(0.05)
-    else:
-        raise SystemExit("viewer did not answer " + path)
+            if time.time() > deadline:
+                raise SystemExit("viewer did not answer " + path + " within 60 s")
+            time.sleep(0.1)
     if must not in body[:200000]:
         raise SystemExit("viewer page " + path + " lacks " + must.decode())
 try:
