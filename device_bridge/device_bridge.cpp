@@ -263,19 +263,21 @@ double DeviceBridge::latency_percentile_us(double q) const { return hist_.percen
 
 void DeviceBridge::publish_stats() { bus_.publish(ch_stats_, stats_message()); }
 
-lcmt_process_stats DeviceBridge::stats_message() {
-  lcmt_process_stats m{};
+const lcmt_process_stats& DeviceBridge::stats_message() {
+  lcmt_process_stats& m = stats_msg_;
+  if (m.process_name.empty()) {   // names and the opened device's limits once: the loop then only counts
+    m.process_name = device::bridge_stats_name(opt_.device);
+    m.process_id = opt_.device;
+    m.snapshot_age_ms = -1;
+    m.extra_names = {"max_force_n"};
+    m.extra_values = {opt_.max_force_n};
+    device::put_reported_limits(desc_, m);
+  }
   bus::stamp(m, instance_id_);
   m.seq = ++stats_seq_;
-  m.process_name = device::bridge_stats_name(opt_.device);
-  m.process_id = opt_.device;
-  m.snapshot_age_ms = -1;
   m.messages_in = feedbacks_.load();
   m.messages_out = readings_.load();
   m.rejected_messages = refused_.load();
-  m.extra_names = {"max_force_n"};
-  m.extra_values = {opt_.max_force_n};
-  device::put_reported_limits(desc_, m);
   return m;
 }
 uint64_t DeviceBridge::latency_samples() const { return hist_.count(); }

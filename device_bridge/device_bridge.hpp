@@ -84,7 +84,7 @@ class DeviceBridge {
   // This bridge's health numbers and its device's reported limits (device/reported_limits.hpp), which
   // run() publishes on HAPTREE_STATS_DEVICE_BRIDGE_<id> as it starts and then once a second: a coupler
   // started with --device-limits-wait-s checks its gains against those limits.
-  lcmt_process_stats stats_message();
+  const lcmt_process_stats& stats_message();
   // Largest change of the rendered force between two device ticks (N): what the hand feels as a jerk.
   double max_force_step_n() const { return max_force_step_n_.load(); }
   // pose-to-force latency: DEVICE_STATE seq s published -> first FEEDBACK echoing s received (µs)
@@ -117,6 +117,7 @@ class DeviceBridge {
   std::unique_ptr<device::Device> device_;
   device::DeviceDescription desc_;
   int64_t stats_seq_ = 0;
+  lcmt_process_stats stats_msg_{};   // built at the first publish (after open), then updated in place
   std::unique_ptr<bus::ShmWriter> shm_state_;
   std::unique_ptr<bus::ShmReader> shm_feedback_;
   bus::LatestValue<lcmt_feedback> fb_box_;
