@@ -41,7 +41,7 @@ function(haptree_export_library target name)
   # are part of the shared one too.
   get_target_property(srcs ${target} SOURCES)
   set(foreign_objects ${srcs})
-  list(FILTER foreign_objects INCLUDE REGEX "^\\$<TARGET_OBJECTS:")
+  list(FILTER foreign_objects INCLUDE REGEX "^\\$<TARGET_OBJECTS:|\\.o$")   # and prebuilt objects
   add_library(${target}_shared SHARED $<TARGET_OBJECTS:${target}> ${foreign_objects})
   set_target_properties(${target}_shared PROPERTIES OUTPUT_NAME ${target} EXPORT_NAME ${name}
                         VERSION ${PROJECT_VERSION} SOVERSION ${HAPTREE_SOVERSION}

@@ -7,7 +7,66 @@
 #include <cstdlib>
 #include <type_traits>
 
+#include "haptree/isa.hpp"
+
+// Run-time choice of the instruction set. This file is compiled twice: for the library's baseline
+// (x86-64-v2), and, as the unity file dca_avx2.cpp, for x86-64-v3 (AVX2 + FMA: 4-lane products of
+// the 6×6 blocks), whose copy of every function is renamed at build time (cmake/LocalizeObject.cmake)
+// so that nothing of it, Eigen's and the standard library's inline code included, can stand in for
+// the baseline's. The entry points below start with HAPTREE_DCA_DISPATCH: in the baseline copy it
+// hands the call to the x86-64-v3 copy when the CPU has it (isa::active() ≥ avx2); in that copy it is
+// empty, so everything called from there (the passes, every node) runs at the same level. The
+// AVX-512 level uses the x86-64-v3 code: 6-vectors fill 4-lane registers, not 8-lane ones.
+namespace haptree::detail {
+/// The entry points of one compiled copy of the DCA.
+struct DcaKernels {
+  void (*forward_kinematics)(const Model&, Data&, const Eigen::VectorXd&) noexcept;
+  void (*body_dynamics_terms)(const Model&, Data&, const State&) noexcept;
+  void (*dca_leaf)(const Model&, Data&, int) noexcept;
+  void (*dca_assemble)(const Model&, Data&, int, const Eigen::VectorXd&) noexcept;
+  void (*dca_top_down_node)(const Model&, Data&, int) noexcept;
+  void (*dca_bottom_up)(const Model&, Data&, const State&) noexcept;
+  void (*dca_bottom_up_node)(const Model&, Data&, int, const Eigen::VectorXd&) noexcept;
+  void (*dca_top_down)(const Model&, Data&) noexcept;
+  const Eigen::VectorXd& (*forward_dynamics)(const Model&, Data&, const State&) noexcept;
+};
+}  // namespace haptree::detail
+
+#if HAPTREE_DCA_AVX2
+extern "C" const haptree::detail::DcaKernels* haptree_dca_kernels_avx2() noexcept;
+#endif
+#if defined(HAPTREE_DCA_LEVEL) || !HAPTREE_DCA_AVX2
+#define HAPTREE_DCA_DISPATCH(fn, ...) ((void)0)
+#else
+#define HAPTREE_DCA_DISPATCH(fn, ...) \
+  if (const detail::DcaKernels* k_ = detail::dca_kernels()) return k_->fn(__VA_ARGS__)
+#endif
+
 namespace haptree {
+
+#if !defined(HAPTREE_DCA_LEVEL)
+namespace detail {
+/// The x86-64-v3 copy when the kernels run at avx2 or above and the build has it; null: this copy.
+const DcaKernels* dca_kernels() noexcept {
+#if HAPTREE_DCA_AVX2
+  if (isa::active() >= isa::Level::avx2) return haptree_dca_kernels_avx2();
+#endif
+  return nullptr;
+}
+}  // namespace detail
+
+isa::Level dca_level() noexcept {
+#if HAPTREE_DCA_AVX2
+  return detail::dca_kernels() ? isa::Level::avx2 : isa::Level::generic;
+#elif defined(__AVX512F__) && defined(__AVX512VL__)
+  return isa::Level::avx512;   // the whole library compiled for it (-march)
+#elif defined(__AVX2__) && defined(__FMA__)
+  return isa::Level::avx2;
+#else
+  return isa::Level::generic;
+#endif
+}
+#endif
 
 namespace {
 
@@ -67,6 +126,7 @@ void joint_placement(const Model& m, int k, const Eigen::VectorXd& q, const Mat3
 }
 
 void forward_kinematics(const Model& m, Data& d, const Eigen::VectorXd& q) noexcept {
+  HAPTREE_DCA_DISPATCH(forward_kinematics, m, d, q);
   d.R[0].setIdentity();
   d.r[0].setZero();
   d.d[0].setZero();
@@ -107,6 +167,7 @@ inline void body_inertia_terms(const Model& m, Data& d, const State& st, int k) 
 }  // namespace
 
 void body_dynamics_terms(const Model& m, Data& d, const State& st) noexcept {
+  HAPTREE_DCA_DISPATCH(body_dynamics_terms, m, d, st);
   d.v[0].setZero();
   for (int k = 1; k < m.nbodies; ++k) {
     joint_motion_terms(m, d, k, st.qd, d.v[m.parent[k]]);
@@ -191,6 +252,7 @@ inline void shift_cols_in_place(Mat6& A, const Vec3& dv) {
 }  // namespace
 
 void dca_leaf(const Model& m, Data& d, int node) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_leaf, m, d, node);
   const auto& t = m.tree;
   const int k = t.body[node];
   const int h = t.handle_num[node];
@@ -814,6 +876,7 @@ void leaf_form_top_down(const Model& m, Data& d, int node, int side) {
 }  // namespace
 
 void dca_assemble(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_assemble, m, d, node, tau);
   const auto& t = m.tree;
   d.cluster_live[node] = 0;
   if (!d.leaf_side.empty()) d.leaf_side[node] = 0;
@@ -1127,6 +1190,7 @@ void top_down_inertia_form(const Model& m, Data& d, int node) {
 }  // namespace
 
 void dca_top_down_node(const Model& m, Data& d, int node) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_top_down_node, m, d, node);
   const auto& t = m.tree;
   if (d.cluster_live[node]) {
     top_down_inertia_form(m, d, node);
@@ -1219,6 +1283,7 @@ inline void bottom_up_node(const Model& m, Data& d, const State& st, int node) {
 }  // namespace
 
 void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_bottom_up, m, d, st);
   const auto& t = m.tree;
   cluster_offsets(m, d);
   std::int64_t count = 0;
@@ -1230,6 +1295,7 @@ void dca_bottom_up(const Model& m, Data& d, const State& st) noexcept {
 }
 
 void dca_top_down(const Model& m, Data& d) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_top_down, m, d);
   const auto& t = m.tree;
   for (int root : t.roots)
     for (int s = 0; s < t.handle_num[root]; ++s) d.f(root, s).setZero();
@@ -1493,6 +1559,7 @@ void refine_step(const Model& m, Data& d, const State& st) {
 }  // namespace
 
 const Eigen::VectorXd& forward_dynamics(const Model& m, Data& d, const State& st) noexcept {
+  HAPTREE_DCA_DISPATCH(forward_dynamics, m, d, st);
   forward_kinematics(m, d, st.q);
   if (d.dca_threads > 1) {
     parallel_passes(m, d, st);
@@ -1565,6 +1632,7 @@ double potential_energy(const Model& m, const Data& d) noexcept {
 void dca_cluster_offsets(const Model& m, Data& d) noexcept { cluster_offsets(m, d); }
 
 void dca_bottom_up_node(const Model& m, Data& d, int node, const Eigen::VectorXd& tau) noexcept {
+  HAPTREE_DCA_DISPATCH(dca_bottom_up_node, m, d, node, tau);
   if (m.tree.is_leaf(node)) {
     dca_leaf(m, d, node);
   } else if (m.cluster_index[node] >= 0) {
@@ -1576,3 +1644,13 @@ void dca_bottom_up_node(const Model& m, Data& d, int node, const Eigen::VectorXd
 }
 
 }  // namespace haptree
+
+#if defined(HAPTREE_DCA_LEVEL)
+extern "C" const haptree::detail::DcaKernels* haptree_dca_kernels_avx2() noexcept {
+  using namespace haptree;
+  static constexpr detail::DcaKernels k{&forward_kinematics, &body_dynamics_terms, &dca_leaf,
+                                        &dca_assemble,       &dca_top_down_node,   &dca_bottom_up,
+                                        &dca_bottom_up_node, &dca_top_down,        &forward_dynamics};
+  return &k;
+}
+#endif

@@ -5,6 +5,7 @@
 #pragma once
 
 #include "haptree/data.hpp"
+#include "haptree/isa.hpp"
 
 namespace haptree {
 
@@ -49,6 +50,10 @@ void dca_top_down(const Model& model, Data& data) noexcept;
 /// Full forward dynamics: kinematics, both passes. Returns data.qdd. With data.dca_threads > 1 the
 /// passes run on that many OpenMP threads over disjoint subtrees (bit-for-bit the serial result).
 const Eigen::VectorXd& forward_dynamics(const Model& model, Data& data, const State& state) noexcept;
+/// The instruction set the DCA's functions run at now. In the default (portable) build: avx2 when
+/// isa::active() is avx2 or avx512 (the x86-64-v3 copy of the DCA), generic otherwise. In a build
+/// for one CPU (-DHAPTREE_NATIVE=ON, HAPTREE_MARCH): the level its -march gives, whatever isa::active().
+isa::Level dca_level() noexcept;
 
 /// Data::refine. Sizes the refinement buffers a Data built with Refinement::kOff lacks and, for
 /// kExtended, the long-double inverse-dynamics buffers (O(nbodies), 480 bytes per body); call it
