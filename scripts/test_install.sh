@@ -17,6 +17,8 @@
 #     installed programs run, and purged again (with the user and /etc/haptree their postinst made).
 # Usage: scripts/test_install.sh [BUILD_DIR]   (default: build)
 set -euo pipefail
+# Under pipefail, "producer | grep -q" fails at random: grep -q exits at its first match and the
+# producer, still writing, dies of SIGPIPE. Hence "| grep PATTERN > /dev/null" below (reads it all).
 SRC=$(cd "$(dirname "$0")/.." && pwd)
 BUILD=$(cd "${1:-$SRC/build}" && pwd)
 WORK=$(mktemp -d /tmp/haptree-install.XXXXXX)
@@ -45,7 +47,7 @@ done
 [ -e "$LIBDIR/cmake/haptree/haptreeConfig.cmake" ] && [ -e "$LIBDIR/cmake/haptree/haptreeConfigVersion.cmake" ] \
   || fail "CMake package files"
 [ -e "$LIBDIR/pkgconfig/haptree.pc" ] || fail "haptree.pc"
-find "$PREFIX" -name '_core*.so' -path '*haptree*' | grep -q . || fail "Python extension not installed"
+find "$PREFIX" -name '_core*.so' -path '*haptree*' | grep . > /dev/null || fail "Python extension not installed"
 
 step "systemd unit templates: their command line, run as systemd would run it"
 # ExecStart with CONFIG (the instance's session file, here the installed example) and ARGS (empty, then
@@ -93,7 +95,7 @@ if grep -hE -- "-march|$SRC" "$WORK/consumer"/CMakeFiles/*.dir/flags.make "$WORK
 fi
 MODEL=$PREFIX/share/haptree/models/arm.urdf
 (cd "$WORK" && "$WORK/consumer/consumer" "$MODEL") || fail "consumer (shared) run"
-ldd "$WORK/consumer/consumer" | grep -q "$LIBDIR/libhaptree.so" || fail "consumer does not use the installed libhaptree.so"
+ldd "$WORK/consumer/consumer" | grep "$LIBDIR/libhaptree.so" > /dev/null || fail "consumer does not use the installed libhaptree.so"
 (cd "$WORK" && "$WORK/consumer/consumer_static" "$MODEL") || fail "consumer (static) run"
 
 # The other side of the flags: a consumer built for this CPU (AVX/AVX-512 where it has them) against a
@@ -178,10 +180,10 @@ dpkg-deb -I "$DEV" > "$WORK/dev.info"; dpkg-deb -c "$DEV" > "$WORK/dev.list"
 dpkg-deb -I "$PY" > "$WORK/py.info"; dpkg-deb -c "$PY" > "$WORK/py.list"
 grep "Depends:" "$WORK/rt.info"
 for dep in liblcm1 libsodium23 liburdfdom-model libgomp1 libspdlog1; do
-  grep "^ Depends:" "$WORK/rt.info" | grep -q "$dep" || fail "runtime Depends lacks $dep (dpkg-shlibdeps)"
+  grep "^ Depends:" "$WORK/rt.info" | grep "$dep" > /dev/null || fail "runtime Depends lacks $dep (dpkg-shlibdeps)"
 done
 grep "^ Depends:" "$WORK/rt.info" | grep -Eq "openjdk|default-jre|java" && fail "runtime depends on Java"
-grep "^ Depends:" "$WORK/dev.info" | grep -q "haptree (= " || fail "haptree-dev does not depend on haptree (= version)"
+grep "^ Depends:" "$WORK/dev.info" | grep "haptree (= " > /dev/null || fail "haptree-dev does not depend on haptree (= version)"
 for f in ./usr/bin/sim_server ./usr/bin/coupler ./usr/bin/device_bridge ./usr/bin/haptree_run \
          ./usr/share/haptree/viewer/web/vendor/ngl.js ./usr/share/haptree/data/molecules/ff14sb.dat \
          ./usr/lib/systemd/system/sim_server@.service ./usr/lib/systemd/system/coupler@.service \
@@ -194,7 +196,7 @@ for f in include/haptree/dca.hpp haptree/haptreeConfig.cmake pkgconfig/haptree.p
   grep -qE "$f( -> .*)?\$" "$WORK/dev.list" || fail "dev package lacks $f"   # a symlink: "name -> target"
 done
 grep -q "dist-packages/haptree/__init__.py" "$WORK/py.list" || fail "python package lacks the module"
-installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
+installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep "install ok installed" > /dev/null; }
 if [ "${HAPTREE_TEST_DPKG_INSTALL:-0}" = 1 ] && { installed haptree || installed haptree-dev || installed python3-haptree; }; then
   echo "   dpkg -i skipped: a haptree package is already installed on this machine"
 elif [ "${HAPTREE_TEST_DPKG_INSTALL:-0}" = 1 ]; then
@@ -222,7 +224,7 @@ elif [ "${HAPTREE_TEST_DPKG_INSTALL:-0}" = 1 ]; then
   # dynamic loader without an rpath.
   # shellcheck disable=SC2046
   (cd "$WORK" && c++ -std=c++17 -O2 -o consumer_usr consumer-src/main.cpp $(env -i PATH=/usr/bin:/bin pkg-config --cflags --libs haptree) \
-     && ldd consumer_usr | grep -qE "libhaptree\.so\.[0-9.]+ => /" && ./consumer_usr /usr/share/haptree/models/arm.urdf | tail -1) \
+     && ldd consumer_usr | grep -E "libhaptree\.so\.[0-9.]+ => /" > /dev/null && ./consumer_usr /usr/share/haptree/models/arm.urdf | tail -1) \
     || { echo "consumer against the installed haptree-dev failed"; ok=0; }
   man -w sim_server > /dev/null 2>&1 || [ -e /usr/share/man/man1/sim_server.1.gz ] || { echo "no man page"; ok=0; }
   purge || ok=0

@@ -1,17 +1,20 @@
-// isa_probe: the kernel level the dispatcher picked on this CPU and the force field of two molecular
-// scenes at a fixed pose (energy terms, every body's wrench), as JSON with %.17g numbers; the
-// qemu test (qemu_isa_test.py) runs it on this machine and as an older CPU and compares.
+// isa_probe: the kernel level the dispatcher picked on this CPU, the level the DCA runs at, the
+// force field of two molecular scenes at a fixed pose (energy terms, every body's wrench) and the
+// DCA's q̈ of a protein-like tree, as JSON with %.17g numbers; the qemu test (qemu_isa_test.py) runs
+// it on this machine and as older CPUs and compares.
 #include <cmath>
 #include <cstdio>
 
 #include "haptree/dca.hpp"
 #include "haptree/isa.hpp"
 #include "haptree/molecule/scene.hpp"
+#include "haptree/scenes.hpp"
 
 using namespace haptree;
 
 int main() {
-  std::printf("{\"isa\": \"%s\", \"best\": \"%s\", \"scenes\": {", isa::name(isa::active()), isa::name(isa::best()));
+  std::printf("{\"isa\": \"%s\", \"best\": \"%s\", \"dca\": \"%s\", \"scenes\": {", isa::name(isa::active()),
+              isa::name(isa::best()), isa::name(dca_level()));
   const char* sep = "";
   for (const char* name : {"ala20", "bacteriorhodopsin"}) {
     mol::MolecularScene sc = mol::load_molecular_scene(name);
@@ -31,6 +34,20 @@ int main() {
     std::printf("]}");
     sep = ", ";
   }
-  std::printf("}}\n");
+  std::printf("}, \"dca_qdd\": [");
+  {
+    SceneOptions o;
+    o.seed = 3;
+    const auto model = make_scene("protein_like", o);
+    Data d(*model);
+    State st(*model);
+    st.q = neutral_configuration(*model);
+    if (model->nq == model->nv)   // revolute / prismatic joints only: any q is a configuration
+      for (int k = 0; k < model->nq; ++k) st.q(k) += 0.3 * std::sin(1.7 * k);
+    for (int k = 0; k < model->nv; ++k) st.qd(k) = 0.5 * std::cos(2.3 * k);
+    const Eigen::VectorXd& qdd = forward_dynamics(*model, d, st);
+    for (int k = 0; k < qdd.size(); ++k) std::printf("%s%.17g", k ? ", " : "", qdd(k));
+  }
+  std::printf("]}\n");
   return 0;
 }

@@ -5,6 +5,8 @@ Haswell (x86-64-v3) the avx2 kernel is picked.
 
 Usage: qemu_isa_test.py QEMU ISA_PROBE HAPTREE_FD
 
+The DCA has a baseline and an x86-64-v3 copy chosen the same way (haptree/dca_detail.hpp).
+
 Tolerances (derived, not tuned):
   force field (isa_probe): every kernel level is within 1e-9 of the energy scale (sum of |energy
     terms|) and of the largest wrench component of the all-pairs reference (summation order and a
@@ -69,6 +71,28 @@ v3 = run([qemu, "-cpu", "Haswell", probe])
 check(v3["best"] == "avx2" and v3["isa"] == "avx2", f"qemu Haswell: dispatcher picks avx2 (best {v3['best']}, active {v3['isa']})")
 compare_ff(v3, old, "qemu Haswell avx2 vs qemu Nehalem generic")
 compare_ff(host_generic, old, "host generic vs qemu Nehalem generic")
+
+# The DCA: its x86-64-v3 copy wherever the kernels run at avx2 or above, the baseline copy otherwise;
+# the protein-like tree's q̈ on every CPU within twice the oracle tolerance of tests/core/dca_test.cpp
+# (each copy is within 1e-10 of the long-double oracle, relative to max |q̈|).
+check(host["dca"] == ("avx2" if host["best"] in ("avx2", "avx512") else "generic"),
+      f"host: the DCA runs at {host['dca']} (kernels {host['isa']})")
+check(host_generic["dca"] == "generic", "HAPTREE_ISA=generic: the DCA's baseline copy on the host")
+check(old["dca"] == "generic", f"qemu Nehalem: the DCA's baseline copy ({old['dca']})")
+check(v3["dca"] == "avx2", f"qemu Haswell: the DCA's x86-64-v3 copy ({v3['dca']})")
+
+
+def compare_dca(a, b, label):
+    x, y = a["dca_qdd"], b["dca_qdd"]
+    scale = max(abs(v) for v in x)
+    d = max(abs(s - t) for s, t in zip(x, y))
+    check(len(x) == len(y) and len(x) > 100 and scale > 0 and d <= 2e-10 * scale,
+          f"{label}: protein-like q̈ differs by {d:.3e} <= 2e-10 x {scale:.4e}")
+
+
+compare_dca(host, old, f"host DCA {host['dca']} vs qemu Nehalem generic")
+compare_dca(v3, old, "qemu Haswell DCA avx2 vs qemu Nehalem generic")
+compare_dca(host, host_generic, f"host DCA {host['dca']} vs host generic")
 
 fd_cmd = [fd, "--scene", "chain", "--n", "8", "--indent", "-1"]
 a = run(fd_cmd)["qdd"]
