@@ -19,8 +19,9 @@ endforeach()
 install(TARGETS ${installed_programs} RUNTIME DESTINATION ${CMAKE_INSTALL_BINDIR} COMPONENT runtime)
 
 # Public headers keep their include path: <prefix>/include/haptree/xxx.hpp is #include "haptree/xxx.hpp".
+# dca_detail.hpp is the DCA sources' own (internal) header, not part of the API.
 install(DIRECTORY ${PROJECT_SOURCE_DIR}/haptree/ DESTINATION ${CMAKE_INSTALL_INCLUDEDIR}/haptree
-        COMPONENT dev FILES_MATCHING PATTERN "*.hpp")
+        COMPONENT dev FILES_MATCHING PATTERN "*.hpp" PATTERN "dca_detail.hpp" EXCLUDE)
 
 # Data: molecules and force-field tables (found by haptree::molecule::data_dir()), sample URDF models,
 # the viewer's page (NGL vendored), the LCM schemas (lcmtypes/CMakeLists.txt), lcm-spy's jar if built.

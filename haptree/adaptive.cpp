@@ -619,7 +619,7 @@ void build_inertia_form(const Model& m, AdaptiveData& ad) {
   const auto& t = m.tree;
   std::vector<int>& stack = ad.scratch_stack;
   // Inertia-form active nodes (children first: their ids are larger). The cases and their
-  // readers are dca.cpp's; a side read as an inertia must be a leaf (not the ground) or such a
+  // readers are dca_inertia_form.cpp's; a side read as an inertia must be a leaf (not the ground) or such a
   // node, a projected one-handle side may also be in mobility form (one_handle_inertia inverts
   // its Φ), and a pin joint to the ground must be active.
   auto inertia_side = [&](int X) {
@@ -992,7 +992,7 @@ void hybrid_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad,
       }
   }
   // 3. Hybrid bottom-up and top-down over the active region only. The inertia-form regions'
-  // offsets are compensated sums of d_k (as dca.cpp's cluster_offsets, but over those regions
+  // offsets are compensated sums of d_k (as dca_cluster_offsets, but over those regions
   // only, O(|active|)): every joint inside them is active, so d_k is current there.
   for (int k : ad.if_bodies) {
     if (ad.if_top[k]) {

@@ -116,7 +116,7 @@ struct Data {
   std::vector<Vec6> cb;                ///< (ncluster_nodes) a_o with no handle forces (cMinv = ∂a_o/∂F_o)
   std::vector<std::uint8_t> cluster_live;   ///< (nnodes) assembled in inertia form in this pass
 
-  /// Light-leaf form (dca.cpp): a node joining a leaf body to the stiffer side of its
+  /// Light-leaf form (dca_light_leaf.cpp): a node joining a leaf body to the stiffer side of its
   /// joint is assembled from the leaf's inertia, not from its mobility. leaf_adr: slot of a node
   /// with a (non-ground) leaf child, else −1; leaf_side: 0 mobility form, 1 P is the leaf, 2 Q is;
   /// leaf_F: ∂f_J/∂f_L, the joint force on the leaf per force on its other handles (at r_J).

@@ -1,7 +1,7 @@
 /// @file
 /// Inverse dynamics residual r = τ − ID(q, q̇, q̈) in a chosen precision S, kinematics included,
 /// from the model's data and the state as given (RNEA at the joint points r_k, world axes, the
-/// conventions of dca.cpp). forward_dynamics uses S = long double for Refinement::kExtended; the
+/// conventions of dca_kinematics.cpp). forward_dynamics uses S = long double for Refinement::kExtended; the
 /// tests instantiate it with __float128 for their quad-precision reference (tests/support). Written
 /// with explicit formulas (Rodrigues, quaternion matrix) so that S needs only + − × / and the three
 /// functions of ScalarFunctions.
