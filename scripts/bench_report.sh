@@ -194,14 +194,14 @@ for s in "${sections[@]}"; do
       block latency "scripts/measure_latency.sh $build $dur $data/latency.csv '$filter'" ;;
     viewer)
       command -v chromium >/dev/null || { echo "bench_report: viewer needs Debian's chromium" >&2; missing=1; continue; }
-      have tools/haptree_run viewer || continue
+      have launcher/haptree_run viewer || continue
       secs=20; [ $quick -eq 0 ] || secs=3
-      run viewer /usr/bin/python3 tests/browser/viewer_cost.py "$build/tools/haptree_run" $secs
+      run viewer /usr/bin/python3 tests/browser/viewer_cost.py "$build/launcher/haptree_run" $secs
       if [ $dry -eq 0 ]; then
         $tables md2csv < "$tmp/viewer.out" > "$data/viewer_cost.csv"
         grep '^|' "$tmp/viewer.out" > "$tmp/viewer.md"
       fi
-      block viewer "/usr/bin/python3 tests/browser/viewer_cost.py $build/tools/haptree_run $secs" ;;
+      block viewer "/usr/bin/python3 tests/browser/viewer_cost.py $build/launcher/haptree_run $secs" ;;
     *) echo "bench_report: unknown section '$s' (see --help)" >&2; exit 2 ;;
   esac
 done

@@ -4,7 +4,7 @@
 #   bash scripts/check_code_comments.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
-dirs=(haptree sim_server coupler device_bridge viewer imd_bridge tools bench tests fuzz python java scripts cmake
+dirs=(haptree sim_server coupler device_bridge viewer imd_bridge launcher tools bench tests fuzz python java scripts cmake
       examples packaging)
 hits=$(grep -rnP --include='*.cpp' --include='*.hpp' --include='*.h' --include='*.c' --include='*.py' \
          --include='*.sh' --include='*.cmake' --include='CMakeLists.txt' --include='*.java' --include='*.toml' \

@@ -27,13 +27,13 @@ The rule, for each command (its trailing comment is the text after the first unq
      coupler, haptree_run ... is the build's). The commands of one page run in page order in one
      folder (a key or a log made by one line is there for the next). A command is changed only by
      appending or replacing options, so that it ends within seconds:
-       - `bash scripts/main.sh ARGS` runs as `build/tools/haptree_run ARGS`: main.sh is
+       - `bash scripts/main.sh ARGS` runs as `build/launcher/haptree_run ARGS`: main.sh is
          install_deps.sh + build.sh + exec haptree_run, and CI has installed and built already;
        - haptree_run: --duration-s at most 1 (added when missing), --viewer-port 0 when not given;
        - the programs in SHORTEN get their size or step option replaced by a small value.
 
   3. Every command, run or marked, names only options its program has: for each program of
-     BUILD_DIR (build/tools/haptree_run, or a bare sim_server, coupler, ...), every --option of the
+     BUILD_DIR (build/launcher/haptree_run, or a bare sim_server, coupler, ...), every --option of the
      command must appear in that program's --help.
 
 Prints a table (page, line, command, run/marker, result, seconds). Exits 1 if a command has neither a
@@ -157,8 +157,8 @@ def marker_of(comment):
 
 def shorten(cmd):
     """Appends/replaces options of known programs in each simple command of cmd."""
-    # main.sh = install_deps.sh + build.sh + exec build/tools/haptree_run "$@"
-    cmd = re.sub(r"(^|[;&|(]\s*)(bash\s+)?(\./)?scripts/main\.sh\b", r"\1build/tools/haptree_run", cmd)
+    # main.sh = install_deps.sh + build.sh + exec build/launcher/haptree_run "$@"
+    cmd = re.sub(r"(^|[;&|(]\s*)(bash\s+)?(\./)?scripts/main\.sh\b", r"\1build/launcher/haptree_run", cmd)
     parts = re.split(r"(\s*(?:&&|\|\||;|\|)\s*|\n)", cmd)
     out = []
     for p in parts:
@@ -283,7 +283,7 @@ def main():
     if a.only:
         pages = [p for p in pages if p in a.only]
     dirs = [os.path.join(build, d) for d in
-            ("tools", "sim_server", "coupler", "device_bridge", "viewer", "imd_bridge", "bench")]
+            ("launcher", "tools", "tools/faults", "sim_server", "coupler", "device_bridge", "viewer", "imd_bridge", "bench")]
     path = os.pathsep.join(dirs)
     env = dict(os.environ, PATH=path + os.pathsep + os.environ.get("PATH", ""),
                PYTHONDONTWRITEBYTECODE="1", MPLBACKEND="Agg")

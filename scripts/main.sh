@@ -13,4 +13,4 @@ lean=()
                                      -DHAPTREE_BUILD_PYTHON=OFF -DHAPTREE_BUILD_JAVA=OFF)
 echo "[haptree] building (log: build.log) ..."
 bash scripts/build.sh "${lean[@]}" > build.log 2>&1 || { tail -50 build.log; exit 1; }
-exec ./build/tools/haptree_run "$@"
+exec ./build/launcher/haptree_run "$@"

@@ -20,7 +20,7 @@ source "$(dirname "$0")/netns_lo.sh" "$build" "$duration" "${values[@]}"
 # Grab geometry: the device's grab waypoint (0, 0, 0.01 m) x position scale 10 onto the last body at q = 0.
 # The body's origin comes from the launcher's embedded run (its coupler logs the offset it was given).
 probe=$(mktemp -d /tmp/stale_after.XXXXXX)
-"$build/tools/haptree_run" --duration-s 1 --n 64 >"$probe/run.out" 2>&1
+"$build/launcher/haptree_run" --duration-s 1 --n 64 >"$probe/run.out" 2>&1
 body=$(sed -nE 's/.*pulling bodies ([0-9]+).*/\1/p' "$probe/run.out" | head -1)
 read -r ox oy oz < <(sed -nE 's/.*mapping: scene = [0-9.]+ x device_m \+ \[([^ ]+) ([^ ]+) ([^]]+)\].*/\1 \2 \3/p' \
                      "$probe/run.out" | head -1)

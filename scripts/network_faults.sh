@@ -6,10 +6,10 @@
 #   Session 1, loss: nftables in each namespace drops N % of the datagrams arriving from the other host
 #     (`numgen random mod 100 < N drop`, matched on the peer's source address so that the workstation's own
 #     multicast loopback, DEVICE_STATE and FEEDBACK, is not touched).
-#   Session 2, tools/fault_relay in ns A between the server's group (239.255.76.67:7667) and the
+#   Session 2, tools/faults/fault_relay in ns A between the server's group (239.255.76.67:7667) and the
 #     workstation's (239.255.76.68:7668): delay 5 +- 2 ms, 25 % reordering, duplication, a 2 s blackout.
 # Where the kernel has sch_netem, `tc qdisc ... netem` would do the same; this one has none (checked at start).
-# The table comes from tools/fault_metrics on the workstation's LCM log; the script exits 1 if any fault
+# The table comes from tools/faults/fault_metrics on the workstation's LCM log; the script exits 1 if any fault
 # broke a limit (force above the clamp, a change faster than the rate limit, no ramp to zero, no recovery)
 # or did not show up (the fault was not injected).
 #   scripts/network_faults.sh [BUILD_DIR] [--short]       (needs root: ip netns, nft)
@@ -30,7 +30,7 @@ rate_limit=$(awk -v c="$clamp" 'BEGIN { print c / 0.005 }')
 strict=()
 [ "$mode" != "--short" ] && [ "${STRICT:-1}" = 1 ] && strict=(--rate-limit-n-per-s "$rate_limit" --max-ramp-ms 10)
 step_limit=$(awk -v r="$rate_limit" 'BEGIN { print r / 1000 }')
-for exe in sim_server/sim_server coupler/coupler device_bridge/device_bridge tools/fault_relay tools/fault_metrics; do
+for exe in sim_server/sim_server coupler/coupler device_bridge/device_bridge tools/faults/fault_relay tools/faults/fault_metrics; do
   [ -x "$build/$exe" ] || { echo "network_faults: $build/$exe missing (build it first)" >&2; exit 2; }
 done
 if [ "$(id -u)" -ne 0 ]; then
@@ -143,7 +143,7 @@ stop_session
 args=()
 for ph in "${phases[@]}"; do args+=(--phase "$ph"); done
 for e in "${expects[@]}"; do args+=(--expect "$e"); done
-"$build/tools/fault_metrics" "$tmp/loss.lcmlog" "${args[@]}" --settle-s "$settle_s" --max-force-n "$clamp" \
+"$build/tools/faults/fault_metrics" "$tmp/loss.lcmlog" "${args[@]}" --settle-s "$settle_s" --max-force-n "$clamp" \
   "${strict[@]}" >"$tmp/loss.table" 2>"$tmp/loss.err" || fail=1
 step1=$(device_step "$tmp/loss.device.log")
 
@@ -154,7 +154,7 @@ relay_phases=(--phase "$warm_s:none" --phase "$fault_s:none" --phase "$settle_s:
               --phase "$fault_s:dup=50" --phase "$settle_s:none"
               --phase "$blackout_s:blackout" --phase "$settle_s:none")
 total=$(awk -v w="$warm_s" -v f="$fault_s" -v s="$settle_s" -v b="$blackout_s" 'BEGIN { print w + 4 * f + b + 5 * s + 1 }')
-ip netns exec "$A" "$build/tools/fault_relay" --a 239.255.76.67:7667 --b 239.255.76.68:7668 "${relay_phases[@]}" \
+ip netns exec "$A" "$build/tools/faults/fault_relay" --a 239.255.76.67:7667 --b 239.255.76.68:7668 "${relay_phases[@]}" \
   --duration "$((${total%.*} + 5))" >"$tmp/relay.log" 2>&1 &
 pids+=($!)
 sleep 0.2
@@ -175,7 +175,7 @@ done
 args+=(--expect "no fault, relay:max_force_n:0.05:1e9" --expect "delay 5+-2 ms:latency_ms:4:1e9"
        --expect "reorder 25 %:reordered:10:1e9" --expect "duplicate 50 %:duplicated:10:1e9"
        --expect "blackout 2 s:snapshot_hz:0:5" --expect "blackout 2 s:trips:1:1e9")
-"$build/tools/fault_metrics" "$tmp/relay.lcmlog" "${args[@]}" --settle-s "$settle_s" --max-force-n "$clamp" \
+"$build/tools/faults/fault_metrics" "$tmp/relay.lcmlog" "${args[@]}" --settle-s "$settle_s" --max-force-n "$clamp" \
   "${strict[@]}" >"$tmp/relay.table" 2>"$tmp/relay.err" || fail=1
 step2=$(device_step "$tmp/relay.device.log")
 

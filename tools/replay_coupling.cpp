@@ -163,7 +163,7 @@ int main(int argc, char** argv) {
   // Pass 2, in log order: each FEEDBACK is recomputed from the snapshot and device state it names, logged
   // before it. They are looked up by (instance_id, version) and (instance_id, seq): a restarted server
   // reuses versions and a restarted device seqs, and a replayed message of an earlier instance must not
-  // stand for the live one's (both found by tools/chaos_soak). FEEDBACK of schema 3 names both instances;
+  // stand for the live one's (both found by tools/faults/chaos_soak). FEEDBACK of schema 3 names both instances;
   // instance 0 stands for any (the newest message with that number). Only the last kKeep of each are kept
   // (a FEEDBACK answers inputs of the last stale_after_s, or it is a skipped watchdog ramp), so memory stays
   // bounded on long logs.

@@ -6,7 +6,7 @@
 // writer, a foreign or replayed stream, a stray message. Header-only, noexcept, no allocation: it runs in
 // handler threads and in the device loop. One lock per channel, used from one thread.
 //
-// Replays (found by tools/chaos_soak): a recorded message of an earlier instance, re-sent while the locked
+// Replays (found by tools/faults/chaos_soak): a recorded message of an earlier instance, re-sent while the locked
 // producer is down (silent), would be taken over as a restart and render a dead session's force. So
 //  * an instance once replaced never comes back (the last kRetired replaced ids are remembered: a real
 //    restart always draws a new random id), and

@@ -31,7 +31,7 @@ def session_log(tmp_path_factory):
     if shutil.which("lcm-logger") is None:
         pytest.fail("lcm-logger is missing (Debian package liblcm-bin)")
     log = tmp_path_factory.mktemp("lcm") / "session.lcmlog"
-    run = tool("tools/haptree_run")
+    run = tool("launcher/haptree_run")
     opts = (f"--stiffness {SESSION['stiffness']} --damping {SESSION['damping']} "
             f"--position-scale {SESSION['position_scale']} --force-scale {SESSION['force_scale']} "
             f"--max-force-n {SESSION['max_force_n']}")

@@ -1,6 +1,6 @@
 """Cost of the viewer to the sim and the coupler, and the viewer's frame rate in headless chromium.
 
-  /usr/bin/python3 tests/browser/viewer_cost.py build/tools/haptree_run [SECONDS] [--only tab]
+  /usr/bin/python3 tests/browser/viewer_cost.py build/launcher/haptree_run [SECONDS] [--only tab]
 
 Runs the bacteriorhodopsin session (README: --dt 0.0005 --position-scale 1 --stiffness 200) three times
 for SECONDS (default 20) each: no viewer; viewer with no tab; viewer with one headless chromium tab
@@ -11,7 +11,7 @@ the page has the hook, SwiftShader's time per draw with and without each represe
 (haptreeRasterMs). `--only tab` runs the tab configuration alone (the frame-rate figures).
 HAPTREE_VIEWER_WEB_DIR=DIR serves another copy of the page (e.g. an older one, to compare).
 
-  /usr/bin/python3 tests/browser/viewer_cost.py build/tools/haptree_run --frames [SECONDS]
+  /usr/bin/python3 tests/browser/viewer_cost.py build/launcher/haptree_run --frames [SECONDS]
 
 The cost per frame of the page in headless chromium (SwiftShader, no GPU) for ala20, bacteriorhodopsin
 and the sample robots (data/robots: arm, cable, snake): per scene one session and one tab for SECONDS

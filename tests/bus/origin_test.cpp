@@ -1,4 +1,4 @@
-// OriginLock (haptree/bus/origin.hpp) against replays, found by tools/chaos_soak: while the locked producer
+// OriginLock (haptree/bus/origin.hpp) against replays, found by tools/faults/chaos_soak: while the locked producer
 // is down, a re-sent message of an earlier instance, or a recorded message stamped long ago, must not pass
 // for a restarted producer; a real restart (a new id, a fresh stamp) still must.
 #include <gtest/gtest.h>

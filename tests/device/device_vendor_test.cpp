@@ -26,7 +26,7 @@
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/spatial.hpp"
 #include "tests/device/vendor_test_util.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace haptree {
 namespace {
@@ -117,7 +117,7 @@ Quat quat(const lcmt_device_state& s) {
 
 // One device_bridge run against a fake: hub, fake coupler, bridge process, files.
 struct Session {
-  tools::TcpqHub hub{0};
+  launcher::TcpqHub hub{0};
   std::string suffix, dir, bridge_log, force_log;
   std::unique_ptr<FakeCoupler> coupler;
   pid_t pid = -1;

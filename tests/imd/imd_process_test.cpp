@@ -14,7 +14,7 @@
 #include "haptree/spatial.hpp"
 #include "tests/imd/imd_receiver.hpp"
 #include "tests/integration/spawn.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace haptree {
 namespace {
@@ -63,7 +63,7 @@ int stop_and_wait(pid_t pid) {
 }
 
 TEST(ImdProcesses, ImdBridgeBesideSimServerServesAndPulls) {
-  tools::TcpqHub hub(0);
+  launcher::TcpqHub hub(0);
   const std::string url = hub.url();
   const int port = free_port();
   const std::string dir = ::testing::TempDir();

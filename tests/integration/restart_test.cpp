@@ -1,5 +1,5 @@
 // Real processes on one host without any network: the device link over shared memory, the rest over
-// LCM tcpq:// through a hub bound to 127.0.0.1 (tools/tcpq_hub.hpp). No root needed.
+// LCM tcpq:// through a hub bound to 127.0.0.1 (launcher/tcpq_hub.hpp). No root needed.
 //  * ServerKilledMidSession: SIGKILL the sim_server process while the scripted user pulls; from the
 //    device side (the FEEDBACK shared-memory segment the device_bridge reads), the force must reach
 //    exactly zero within 10x the coupler's watchdog time (stale_after_s + ramp_down_s) and stay zero; the
@@ -26,7 +26,7 @@
 #include "haptree/safety.hpp"
 #include "haptree/scenes.hpp"
 #include "tests/integration/spawn.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 extern char** environ;
 
@@ -56,7 +56,7 @@ struct Sample {
 TEST(Restart, ServerKilledMidSession) {
   constexpr double kStaleAfterS = 0.05;
   const double watchdog_s = kStaleAfterS + WatchdogParams{}.ramp_down_s;   // the coupler's ramp-down
-  tools::TcpqHub hub(0);
+  launcher::TcpqHub hub(0);
   const std::string url = hub.url();
   const std::string suffix = "_K" + std::to_string(::getpid());
   const std::string dir = ::testing::TempDir();

@@ -18,7 +18,7 @@
 #include <vector>
 
 #include "haptree/bus/session_config.hpp"
-#include "tools/haptree_status.hpp"
+#include "launcher/haptree_status.hpp"
 
 namespace haptree {
 namespace {
@@ -366,9 +366,9 @@ TEST(Launcher, SessionFileGivesEachUserItsDevice) {
 }
 
 TEST(Status, NoPlaceholderValues) {
-  tools::StatusSample s;
+  launcher::StatusSample s;
   s.t_s = 0.5;
-  tools::UserStatus u;
+  launcher::UserStatus u;
   u.user = 0;
   u.started = true;
   u.rate_hz = 0;    // no window closed yet
@@ -376,12 +376,12 @@ TEST(Status, NoPlaceholderValues) {
   u.grab_body = 0;  // holds nothing
   u.snapshot_age_ms = -1;
   s.users.push_back(u);
-  const std::string text = tools::status_text(s);
+  const std::string text = launcher::status_text(s);
   EXPECT_EQ(text.find("0 Hz"), std::string::npos) << text;
   EXPECT_EQ(text.find("-1"), std::string::npos) << text;
   EXPECT_NE(text.find("no grab"), std::string::npos) << text;
   EXPECT_NE(text.find("sim starting"), std::string::npos) << text;
-  const auto j = nlohmann::json::parse(tools::status_json(s));
+  const auto j = nlohmann::json::parse(launcher::status_json(s));
   EXPECT_TRUE(j["users"][0]["rate_hz"].is_null());
   EXPECT_TRUE(j["users"][0]["snapshot_age_ms"].is_null());
   EXPECT_TRUE(j["users"][0]["grab_body"].is_null());
@@ -393,10 +393,10 @@ TEST(Status, NoPlaceholderValues) {
   s.users[0].rate_hz = 9990;
   s.users[0].grab_body = 7;
   s.users[0].snapshot_age_ms = 1.25;
-  const std::string t2 = tools::status_text(s);
+  const std::string t2 = launcher::status_text(s);
   EXPECT_NE(t2.find("9990 Hz"), std::string::npos) << t2;
   EXPECT_NE(t2.find("body 7, snapshot age 1.2 ms"), std::string::npos) << t2;
-  const auto j2 = nlohmann::json::parse(tools::status_json(s));
+  const auto j2 = nlohmann::json::parse(launcher::status_json(s));
   EXPECT_EQ(j2["users"][0]["grab_body"].get<int>(), 7);
   EXPECT_DOUBLE_EQ(j2["users"][0]["snapshot_age_ms"].get<double>(), 1.25);
   EXPECT_DOUBLE_EQ(j2["sim"]["step_ms"].get<double>(), 0.25);

@@ -22,7 +22,7 @@
 #include "haptree/bus/channels.hpp"
 #include "haptree/bus/shm_channel.hpp"
 #include "tests/integration/spawn.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace haptree {
 namespace {
@@ -50,7 +50,7 @@ std::string last_line_with(const std::string& path, const std::string& key) {
 }
 
 TEST(ShmCleanup, DeadSessionsForceNeverReachesANewDevice) {
-  tools::TcpqHub hub(0);
+  launcher::TcpqHub hub(0);
   const std::string suffix = "_D" + std::to_string(::getpid());
   const std::string dir = ::testing::TempDir();
   const std::vector<std::string> common = {"--lcm-url", hub.url(), "--channel-suffix", suffix};

@@ -19,7 +19,7 @@
 #include "haptree/bus/bus.hpp"
 #include "tests/integration/log_recorder.hpp"
 #include "tests/integration/spawn.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace haptree {
 namespace {
@@ -36,7 +36,7 @@ long long number_before(const std::string& out, const std::string& word) {
 }
 
 TEST(ShmReplay, RecordedShmSessionReplaysWithDefaults) {
-  tools::TcpqHub hub(0);
+  launcher::TcpqHub hub(0);
   const std::string suffix = "_P" + std::to_string(::getpid());
   const std::string dir = ::testing::TempDir();
   const std::string path = dir + "haptree_shm_session.lcmlog";

@@ -25,7 +25,7 @@
 #include "tests/device/inverse3/fake_inverse_service.hpp"
 #include "tests/device/vendor_test_util.hpp"
 #include "tests/integration/spawn.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace haptree {
 namespace {
@@ -134,7 +134,7 @@ struct Session {
     return n;
   }
   FakeInverseService svc;
-  tools::TcpqHub hub;
+  launcher::TcpqHub hub;
   std::string suffix, log;
   FakeCoupler coupler;
   pid_t pid = -1;

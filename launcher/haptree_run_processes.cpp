@@ -1,5 +1,5 @@
 // `haptree_run --processes`: see haptree_run_processes.hpp.
-#include "tools/haptree_run_processes.hpp"
+#include "launcher/haptree_run_processes.hpp"
 
 #include <fcntl.h>
 #include <signal.h>
@@ -29,11 +29,12 @@
 #include "haptree/dca.hpp"
 #include "haptree/lcmt_feedback.hpp"
 #include "haptree/lcmt_process_stats.hpp"
-#include "tools/haptree_status.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/find_executable.hpp"
+#include "launcher/haptree_status.hpp"
+#include "launcher/tcpq_hub.hpp"
 #include "viewer/viewer.hpp"
 
-namespace haptree::tools {
+namespace haptree::launcher {
 
 namespace {
 
@@ -45,16 +46,6 @@ std::string read_link(const std::string& p) {
   if (n <= 0) return "";
   buf[n] = 0;
   return buf;
-}
-
-bool executable(const std::string& p) {
-  struct stat st {};
-  return ::stat(p.c_str(), &st) == 0 && S_ISREG(st.st_mode) && ::access(p.c_str(), X_OK) == 0;
-}
-
-std::string dir_of(const std::string& p) {
-  const auto s = p.find_last_of('/');
-  return s == std::string::npos ? "." : p.substr(0, s);
 }
 
 struct Child {
@@ -184,23 +175,6 @@ std::string private_netns_problem() {
              "): udpm could leave this host; use --transport shm";
   }
   return "";
-}
-
-std::string find_executable(const std::string& name, const std::string& bin_dir, const std::string& argv0) {
-  std::vector<std::string> tried;
-  if (!bin_dir.empty()) {
-    tried = {bin_dir + "/" + name, bin_dir + "/" + name + "/" + name};
-  } else {
-    std::string self = read_link("/proc/self/exe");
-    if (self.empty()) self = argv0;
-    const std::string d = dir_of(self);
-    tried = {d + "/" + name, d + "/../" + name + "/" + name};
-  }
-  for (const auto& p : tried)
-    if (executable(p)) return p;
-  std::string msg = "cannot find the executable '" + name + "' (tried";
-  for (const auto& p : tried) msg += " " + p;
-  throw std::runtime_error(msg + "); build it (cmake --build <dir> --target " + name + ") or pass --bin-dir");
 }
 
 int run_processes(const ProcessesOptions& po, const SessionOptions& se, const std::atomic<bool>& stop) {
@@ -463,7 +437,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
       if (failed || Clock::now() < next_line) continue;
       next_line += std::chrono::seconds(1);
       const double t = std::chrono::duration<double>(Clock::now() - t0).count();
-      haptree::tools::StatusSample st;
+      haptree::launcher::StatusSample st;
       st.t_s = t;
       {
         std::lock_guard<std::mutex> l(stats.m);
@@ -482,7 +456,7 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
         }
         for (int u = 0; u < se.users; ++u) {
           const auto& k = stats.couplers[static_cast<size_t>(u)];
-          haptree::tools::UserStatus us;
+          haptree::launcher::UserStatus us;
           us.user = u;
           us.started = stats.have_coupler[static_cast<size_t>(u)];
           {
@@ -574,4 +548,4 @@ int run_processes(const ProcessesOptions& po, const SessionOptions& se, const st
   }
 }
 
-}  // namespace haptree::tools
+}  // namespace haptree::launcher

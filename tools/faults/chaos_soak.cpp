@@ -50,7 +50,8 @@
 #include "haptree/scenes.hpp"
 #include "device_bridge/device_bridge.hpp"
 #include "sim_server/sim_server.hpp"
-#include "tools/tcpq_hub.hpp"
+#include "launcher/find_executable.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 namespace {
 
@@ -60,26 +61,6 @@ namespace bus = haptree::bus;
 
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
-
-std::string read_link(const std::string& p) {
-  char buf[4096];
-  const ssize_t n = ::readlink(p.c_str(), buf, sizeof(buf) - 1);
-  return n > 0 ? std::string(buf, static_cast<size_t>(n)) : std::string();
-}
-
-std::string find_exe(const std::string& name, const std::string& bin_dir) {
-  std::vector<std::string> tried;
-  if (!bin_dir.empty()) {
-    tried = {bin_dir + "/" + name, bin_dir + "/" + name + "/" + name};
-  } else {
-    std::string self = read_link("/proc/self/exe");
-    const std::string d = self.substr(0, self.rfind('/'));
-    tried = {d + "/" + name, d + "/../" + name + "/" + name};
-  }
-  for (const auto& p : tried)
-    if (::access(p.c_str(), X_OK) == 0) return p;
-  throw std::runtime_error("cannot find '" + name + "' (tried " + tried.front() + " ...); build it or pass --bin-dir");
-}
 
 // fork + exec with stdout/stderr appended to `log`; the child gets SIGTERM if this tool dies.
 pid_t spawn(const std::vector<std::string>& args, const std::string& log, bool search_path = false) {
@@ -202,10 +183,10 @@ int main(int argc, char** argv) {
 
   std::string exe_sim, exe_cpl, exe_dev;
   try {
-    exe_sim = find_exe("sim_server", bin_dir);
-    exe_cpl = find_exe("coupler", bin_dir);
-    exe_dev = find_exe("device_bridge", bin_dir);
-    replay_exe = find_exe("replay_coupling", bin_dir);
+    exe_sim = haptree::launcher::find_executable("sim_server", bin_dir);
+    exe_cpl = haptree::launcher::find_executable("coupler", bin_dir);
+    exe_dev = haptree::launcher::find_executable("device_bridge", bin_dir);
+    replay_exe = haptree::launcher::find_executable("replay_coupling", bin_dir);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "chaos_soak: %s\n", e.what());
     return 2;
@@ -243,9 +224,9 @@ int main(int argc, char** argv) {
   char fp[32];
   std::snprintf(fp, sizeof fp, "%016llx", static_cast<unsigned long long>(fingerprint));
 
-  std::unique_ptr<haptree::tools::TcpqHub> hub;
+  std::unique_ptr<haptree::launcher::TcpqHub> hub;
   try {
-    hub = std::make_unique<haptree::tools::TcpqHub>(0);
+    hub = std::make_unique<haptree::launcher::TcpqHub>(0);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "chaos_soak: cannot start the tcpq hub: %s\n", e.what());
     return 2;

@@ -1,7 +1,7 @@
 // Network-fault figures from an LCM log of the workstation side (docs/network_faults.md): per fault phase,
 // the FEEDBACK forces the device got (max |f| against the clamp, the fastest change against a rate limit,
 // the watchdog's ramp to zero, the time to recover) and the feedback and snapshot rates.
-// Shared by tools/fault_metrics (table) and tests/integration/network_faults_test (assertions).
+// The table of tools/faults/fault_metrics, which scripts/network_faults.sh (ctest integration_network_faults) runs.
 #pragma once
 
 #include <lcm/lcm-cpp.hpp>

@@ -9,7 +9,7 @@
 #include "haptree/bus/session_config.hpp"
 #include "sim_server/sim_server.hpp"
 
-namespace haptree::tools {
+namespace haptree::launcher {
 
 struct ProcessesOptions {
   bool enabled = false;
@@ -56,13 +56,9 @@ struct SessionOptions {
 // (udpm ttl=0 there cannot reach another machine); otherwise the reason, in plain words.
 std::string private_netns_problem();
 
-// Finds sim_server / coupler / device_bridge: bin_dir/<name>, bin_dir/<name>/<name>, then next to argv0
-// (<dir>/<name>, <dir>/../<name>/<name>). Throws std::runtime_error listing the places tried.
-std::string find_executable(const std::string& name, const std::string& bin_dir, const std::string& argv0);
-
 // Spawns the children, prints the status line every second and the summary, stops them after
 // duration_s or when `stop` becomes true (SIGTERM, then SIGKILL after 5 s), reaps them. Returns 0 if
 // every child exited 0 after being asked to, 1 (with the child's log tail on stderr) otherwise.
 int run_processes(const ProcessesOptions& po, const SessionOptions& se, const std::atomic<bool>& stop);
 
-}  // namespace haptree::tools
+}  // namespace haptree::launcher

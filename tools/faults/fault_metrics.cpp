@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "haptree/bus/channels.hpp"
-#include "tools/fault_metrics.hpp"
+#include "tools/faults/fault_metrics.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"fault_metrics: per-fault figures of the FEEDBACK forces in an LCM log (docs/network_faults.md)"};

@@ -1,7 +1,7 @@
 // fault_relay: a fault-injecting datagram relay between two UDP multicast groups (a test tool).
 // The "server" side publishes LCM udpm on group A, the "workstation" side on group B; the relay forwards
 // every datagram A -> B and B -> A and, during scheduled phases, delays, jitters, reorders, duplicates,
-// drops or blacks out the datagrams. Used by docs/network_faults.md and tests/integration/network_faults_test
+// drops or blacks out the datagrams. Used by docs/network_faults.md and scripts/network_faults.sh (ctest integration_network_faults)
 // where this machine's kernel has no sch_netem. Run it only inside a network namespace (ttl 1 by default).
 //
 // One thread, poll() on the two receive sockets, a min-heap of datagrams due for sending. Its own

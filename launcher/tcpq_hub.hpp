@@ -16,7 +16,7 @@
 #include <string>
 #include <thread>
 
-namespace haptree::tools {
+namespace haptree::launcher {
 
 class TcpqHub {
  public:
@@ -48,4 +48,4 @@ class TcpqHub {
   std::thread thread_;
 };
 
-}  // namespace haptree::tools
+}  // namespace haptree::launcher

@@ -2,7 +2,7 @@
 // as threads over one memq:// Bus (the embedded default: same classes as the three processes), shows a
 // live status line once per second and a summary at the end. No display, no network needed.
 // --processes: the same session with the three real executables as child processes on this host
-// (tools/haptree_run_processes.cpp): device link over shared memory, the rest over a loopback-only LCM
+// (launcher/haptree_run_processes.cpp): device link over shared memory, the rest over a loopback-only LCM
 // tcpq hub run by the launcher (or udpm, only inside a private network namespace).
 #include <CLI/CLI.hpp>
 #include <spdlog/sinks/stdout_color_sinks.h>
@@ -29,8 +29,8 @@
 #include "haptree/device/device_cli.hpp"
 #include "haptree/device/registry.hpp"
 #include "sim_server/sim_server.hpp"
-#include "tools/haptree_run_processes.hpp"
-#include "tools/haptree_status.hpp"
+#include "launcher/haptree_run_processes.hpp"
+#include "launcher/haptree_status.hpp"
 #include "viewer/viewer.hpp"
 
 namespace {
@@ -148,7 +148,7 @@ int main(int argc, char** argv) {
             return in.find('=') == std::string::npos || in.front() == '=' ? "'" + in + "' is not key=value" : "";
           },
           "KEY=VALUE"));
-  haptree::tools::ProcessesOptions po;
+  haptree::launcher::ProcessesOptions po;
   app.add_flag("--processes", po.enabled,
                "run sim_server, coupler(s) and device_bridge(s) as real child processes instead of threads");
   app.add_option("--bin-dir", po.bin_dir,
@@ -243,7 +243,7 @@ int main(int argc, char** argv) {
   std::signal(SIGTERM, on_signal);
   if (po.enabled) {
     po.argv0 = argv[0];
-    haptree::tools::SessionOptions se;
+    haptree::launcher::SessionOptions se;
     se.sim = so;
     se.duration_s = duration_s;
     se.users = users;
@@ -272,7 +272,7 @@ int main(int argc, char** argv) {
     se.clamp_gains = limits.clamp;
     se.device_damping_n_s_per_m = limits.physical_damping_n_s_per_m;
     se.sim_dt_s = limits.sim_dt_s;
-    return haptree::tools::run_processes(po, se, g_stop);
+    return haptree::launcher::run_processes(po, se, g_stop);
   }
   try {
     haptree::bus::Bus bus(lcm_url);
@@ -360,7 +360,7 @@ int main(int argc, char** argv) {
     while (!g_stop) {
       std::this_thread::sleep_for(std::chrono::seconds(1));
       const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      haptree::tools::StatusSample st;
+      haptree::launcher::StatusSample st;
       st.t_s = t;
       st.sim.started = server.steps_done() > 0;
       st.sim.step_ms = server.last_step_ms();
@@ -370,7 +370,7 @@ int main(int argc, char** argv) {
         const auto& k = c->counters();
         max_force = std::max(max_force, k.force_n.load());
         max_rate = std::max(max_rate, k.rate_hz.load());
-        haptree::tools::UserStatus us;
+        haptree::launcher::UserStatus us;
         us.user = c->options().user;
         us.started = true;
         us.rate_hz = k.rate_hz.load();   // 0 until the first window closes: shown as "—"
@@ -385,7 +385,7 @@ int main(int argc, char** argv) {
         st.imd.receiver = imd_server->client_connected();
         st.imd.frames = imd_server->counters().frames_sent.load();
       }
-      const std::string line = json ? haptree::tools::status_json(st) : haptree::tools::status_text(st);
+      const std::string line = json ? haptree::launcher::status_json(st) : haptree::launcher::status_text(st);
       sum_step_ms += server.last_step_ms();
       ++lines;
       std::printf("%s\n", line.c_str());

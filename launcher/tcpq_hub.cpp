@@ -1,5 +1,5 @@
 // TcpqHub: see tcpq_hub.hpp.
-#include "tools/tcpq_hub.hpp"
+#include "launcher/tcpq_hub.hpp"
 
 #include <arpa/inet.h>
 #include <fcntl.h>
@@ -17,7 +17,7 @@
 #include <unordered_map>
 #include <vector>
 
-namespace haptree::tools {
+namespace haptree::launcher {
 
 namespace {
 
@@ -245,4 +245,4 @@ void TcpqHub::loop() {
   connected_ = 0;
 }
 
-}  // namespace haptree::tools
+}  // namespace haptree::launcher

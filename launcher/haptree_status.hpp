@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-namespace haptree::tools {
+namespace haptree::launcher {
 
 constexpr double kNoValue = std::numeric_limits<double>::quiet_NaN();
 
@@ -119,4 +119,4 @@ inline std::string status_json(const StatusSample& s) {
   return j + "}";
 }
 
-}  // namespace haptree::tools
+}  // namespace haptree::launcher
