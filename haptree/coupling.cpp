@@ -7,6 +7,16 @@
 #include <stdexcept>
 #include <string>
 
+#include "haptree/isa.hpp"
+
+#if HAPTREE_COUPLING_AVX2 && !defined(HAPTREE_ISA_COPY)
+// The x86-64-v3 copy of coupling_forces (coupling_avx2.cpp), for CPUs with AVX2 + FMA.
+extern "C" haptree::CouplingStatus haptree_coupling_forces_avx2(const haptree::CouplingSnapshot& s,
+                                                                 const haptree::Vec6* f_u,
+                                                                 haptree::CouplingWorkspace& ws,
+                                                                 haptree::Vec6* f_feed) noexcept;
+#endif
+
 namespace haptree {
 
 namespace {
@@ -413,6 +423,9 @@ void CouplingWorkspace::reserve_for(const CouplingSnapshot& s) {
 
 CouplingStatus coupling_forces(const CouplingSnapshot& s, const Vec6* f_u, CouplingWorkspace& ws,
                                Vec6* f_feed) noexcept {
+#if HAPTREE_COUPLING_AVX2 && !defined(HAPTREE_ISA_COPY)
+  if (isa::active() >= isa::Level::avx2) return haptree_coupling_forces_avx2(s, f_u, ws, f_feed);
+#endif
   ws.nodes_read = 0;
   const CouplingStatus st = validate_coupling_snapshot(s);
   if (st != CouplingStatus::kOk) return st;

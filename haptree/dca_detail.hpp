@@ -37,7 +37,7 @@ const DcaKernels* dca_kernels() noexcept;
 
 extern "C" const haptree::detail::DcaKernels* haptree_dca_kernels_avx2() noexcept;
 
-#if defined(HAPTREE_DCA_LEVEL) || !HAPTREE_DCA_AVX2
+#if defined(HAPTREE_ISA_COPY) || !HAPTREE_DCA_AVX2
 #define HAPTREE_DCA_DISPATCH(fn, ...) ((void)0)
 #else
 #define HAPTREE_DCA_DISPATCH(fn, ...) \

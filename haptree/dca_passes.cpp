@@ -154,7 +154,11 @@ void dca_bottom_up_node(const Model& m, Data& d, int node, const Eigen::VectorXd
   }
 }
 
-#if !defined(HAPTREE_DCA_LEVEL)   // the baseline copy only
+#if !defined(HAPTREE_ISA_COPY)   // the baseline copy only
+#if HAPTREE_DCA_AVX2
+static_assert(EIGEN_MAX_STATIC_ALIGN_BYTES == 16 && EIGEN_MAX_ALIGN_BYTES == 16,
+              "haptree_isa_copy builds the x86-64-v3 copies with this alignment: it must be the baseline's");
+#endif
 const detail::DcaKernels* detail::dca_kernels() noexcept {
 #if HAPTREE_DCA_AVX2
   if (isa::active() >= isa::Level::avx2) return haptree_dca_kernels_avx2();

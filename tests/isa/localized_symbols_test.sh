@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The x86-64-v3 copy of the DCA (haptree/dca_avx2.cpp, renamed by cmake/LocalizeObject.cmake) defines
-# one global symbol under its own name, its entry point; every other one (its copies of the public
+# An x86-64-v3 copy (haptree/dca_avx2.cpp, coupling_avx2.cpp; renamed by cmake/LocalizeObject.cmake) defines
+# one global symbol under its own name, its entry point; every other one (its copies of the library's
 # functions, and of Eigen's and the standard library's inline functions, weak) carries the suffix, so
 # that the linker can never take one of them for the baseline code that runs on any CPU.
 # Usage: localized_symbols_test.sh OBJECT ENTRY SUFFIX
