@@ -1,8 +1,8 @@
 /// @file
 /// Run-time choice of the vectorised kernels' instruction set. The library itself is compiled for a
 /// baseline x86-64 level (x86-64-v2 by default) so that it runs on any such CPU; the kernels that
-/// gain from wider vectors (the force field's cluster kernel) exist once per level, each compiled for
-/// its own level, and the level used is chosen here from the CPU at run time:
+/// gain from wider vectors exist per level (force field: generic, avx2, avx512; DCA, coupling_forces:
+/// generic, avx2, used at avx512 too), and the level used is chosen here from the CPU at run time:
 ///   generic  any CPU (the library's baseline)
 ///   avx2     x86-64-v3: AVX2 + FMA (Intel Haswell, AMD Zen and later)
 ///   avx512   x86-64-v4: AVX-512 F/VL/DQ/BW/CD (Intel Skylake-SP and later servers, AMD Zen 4/5)
