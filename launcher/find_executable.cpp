@@ -11,14 +11,6 @@ namespace haptree::launcher {
 
 namespace {
 
-std::string read_link(const std::string& p) {
-  char buf[4096];
-  const ssize_t n = ::readlink(p.c_str(), buf, sizeof(buf) - 1);
-  if (n <= 0) return "";
-  buf[n] = 0;
-  return buf;
-}
-
 bool executable(const std::string& p) {
   struct stat st {};
   return ::stat(p.c_str(), &st) == 0 && S_ISREG(st.st_mode) && ::access(p.c_str(), X_OK) == 0;
@@ -49,6 +41,14 @@ std::string find_executable(const std::string& name, const std::string& bin_dir,
   std::string msg = "cannot find the executable '" + name + "' (tried";
   for (const auto& p : tried) msg += " " + p;
   throw std::runtime_error(msg + "); build it (cmake --build <dir> --target " + name + ") or pass --bin-dir");
+}
+
+std::string read_link(const std::string& p) {
+  char buf[4096];
+  const ssize_t n = ::readlink(p.c_str(), buf, sizeof(buf) - 1);
+  if (n <= 0) return "";
+  buf[n] = 0;
+  return buf;
 }
 
 }  // namespace haptree::launcher

@@ -14,4 +14,7 @@ namespace haptree::launcher {
 // place tried and how to build the program.
 std::string find_executable(const std::string& name, const std::string& bin_dir, const std::string& argv0 = "");
 
+// The target of the symbolic link p (readlink(2)); empty when p is none or cannot be read.
+std::string read_link(const std::string& p);
+
 }  // namespace haptree::launcher

@@ -40,14 +40,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-std::string read_link(const std::string& p) {
-  char buf[4096];
-  const ssize_t n = ::readlink(p.c_str(), buf, sizeof(buf) - 1);
-  if (n <= 0) return "";
-  buf[n] = 0;
-  return buf;
-}
-
 struct Child {
   std::string name;
   std::string log;
