@@ -128,8 +128,8 @@ int probe_device(const DeviceBridgeOptions& o, double duration_s, std::FILE* out
 }
 
 DeviceBridge::DeviceBridge(bus::Bus& bus, const DeviceBridgeOptions& options)
-    : bus_(bus), opt_(options), instance_id_(bus::new_instance_id()),
-      coupler_lock_(options.feedback_timeout_s) {
+    : instance_id_(bus::new_instance_id()), coupler_lock_(options.feedback_timeout_s), bus_(bus),
+      opt_(options) {   // declaration order
   auto pos = [](double v) { return std::isfinite(v) && v > 0; };
   if (!pos(opt_.rate_hz)) throw std::invalid_argument("device_bridge: --rate-hz must be a positive rate");
   if (!pos(opt_.max_force_n)) throw std::invalid_argument("device_bridge: --max-force-n must be positive and finite");

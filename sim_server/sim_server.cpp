@@ -220,7 +220,7 @@ void SimServer::step_once() {
   Data& d = *data_;
   State& st = *state_;
   // 1. Latest user forces; a new grab fixes the material point in the body frame.
-  bool any_grab = false, grab_changed = false;
+  bool grab_changed = false;
   const double now = since_epoch();
   for (auto& u : users_) {
     take_user_force(*u, now);
@@ -244,7 +244,6 @@ void SimServer::step_once() {
     if (want) {
       // A stale user's force ramps to zero (the grab is kept, so the coupler resumes where it was).
       u->f_u = u->watchdog.gain() * u->f_msg;
-      any_grab = true;
     } else {
       u->f_u.setZero();
     }

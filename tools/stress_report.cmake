@@ -13,7 +13,7 @@ if(CLI11_FOUND AND spdlog_FOUND)
   elseif(HAPTREE_NATIVE)
     set(stress_isa "-march=native")
   else()
-    set(stress_isa "-march=x86-64-v2 (default), force-field kernels chosen at run time")
+    set(stress_isa "-march=x86-64-v2 (default), force field, DCA and coupler kernels chosen at run time")
   endif()
   target_compile_definitions(stress_report PRIVATE HAPTREE_BUILD_ISA="${stress_isa}"
     HAPTREE_BUILD_FLAGS="${CMAKE_CXX_FLAGS} ${CMAKE_CXX_FLAGS_RELEASE}")
