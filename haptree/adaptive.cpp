@@ -10,6 +10,10 @@
 #include <mutex>
 #include <thread>
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include "haptree/dca.hpp"
 
 namespace haptree {
@@ -45,6 +49,7 @@ AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
   X_R.assign(nn, Mat3::Identity());
   X_r.assign(nn, Vec3::Zero());
   fine_frontier.reserve(nn);
+  keep_selected.reserve(8);   // the grabbed bodies: a handover copies the list without allocating
   scratch_nodes.reserve(nn);
   scratch_joints.reserve(nb);
   scratch_mark.assign(nn, 0);
@@ -63,18 +68,18 @@ AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
     phi += 36 * h * h;
     vec += 6 * h;
   }
-  if (!selection_only) {   // the worker borrows the stepping thread's set (lend_metric_scratch)
+  if (!selection_only) {   // the worker borrows the stepping thread's set (swap_metric_scratch)
     Psi_buf.assign(phi, 0.0);
     p_buf.assign(vec, 0.0);
     eta.assign(nn, 0.0);
+    Phi_loc.assign(phi, 0.0);
+    Psi_loc.assign(phi, 0.0);
+    W_loc.assign(nn, Mat6::Zero());
+    q_cached = Eigen::VectorXd::Zero(m.nq);
+    node_moved.assign(nn, 1);
+    world_ok.assign(nn, 0);
+    scratch_joint_moved.assign(nb, 0);
   }
-  Phi_loc.assign(phi, 0.0);
-  Psi_loc.assign(phi, 0.0);
-  W_loc.assign(nn, Mat6::Zero());
-  q_cached = Eigen::VectorXd::Zero(m.nq);
-  node_moved.assign(nn, 1);
-  world_ok.assign(nn, 0);
-  scratch_joint_moved.assign(nb, 0);
   scratch_f.assign(std::max(1, t.max_handles), Vec6::Zero());
   active_nodes.reserve(nn);
   frontier.reserve(nn);
@@ -773,6 +778,7 @@ double select_active_region(const Model& m, Data& d, State& st, AdaptiveData& ad
   ad.report.active_dofs = dofs;
   ad.report.selections++;
   ad.last_options = opt;
+  ad.keep_selected = ad.keep_active_bodies;
   ad.steps_since_selection = 0;
   ad.region_selected = true;
   return ad.report.neglected_metric;
@@ -815,7 +821,8 @@ int next_interval(const AdaptiveOptions& opt, int T, double A0, double T0, doubl
 
 bool reselection_due(const AdaptiveData& ad, const AdaptiveOptions& opt) {
   const int every = opt.reselect_every > 0 ? opt.reselect_every : ad.interval;
-  return options_changed(ad, opt) || ad.steps_since_selection >= std::max(1, every);
+  return options_changed(ad, opt) || ad.steps_since_selection >= std::max(1, every) ||
+         ad.keep_active_bodies != ad.keep_selected;
 }
 
 // Poses and velocities of the reference bodies and of every active joint's endpoints, from the
@@ -1054,6 +1061,9 @@ struct AsyncSelector {
     th.join();
   }
   void loop() {
+    // Below the stepping thread's priority: on a machine with fewer free cores than busy threads the
+    // step and the coupling loop keep their rate and the selection takes what is left.
+    setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 10);
     std::unique_lock<std::mutex> lk(mu);
     for (;;) {
       cv.wait(lk, [&] { return quit || status == kQueued; });
@@ -1112,10 +1122,22 @@ AsyncSelectorHandle::~AsyncSelectorHandle() { delete p; }
 
 namespace {
 
+// The selection's buffers: Ψ, p, η and the incremental metric's cache (Φ, Ψ, W in each node's
+// reference frame, the q they hold, the moved-node marks). One set serves both threads: the worker
+// borrows it for each background selection, the stepping thread takes it back for a synchronous one.
 void swap_metric_scratch(AdaptiveData& a, AdaptiveData& b) {
   std::swap(a.Psi_buf, b.Psi_buf);
   std::swap(a.p_buf, b.p_buf);
   std::swap(a.eta, b.eta);
+  std::swap(a.Phi_loc, b.Phi_loc);
+  std::swap(a.Psi_loc, b.Psi_loc);
+  std::swap(a.W_loc, b.W_loc);
+  std::swap(a.q_cached, b.q_cached);
+  std::swap(a.metric_cached, b.metric_cached);
+  std::swap(a.selections_since_refresh, b.selections_since_refresh);
+  std::swap(a.node_moved, b.node_moved);
+  std::swap(a.world_ok, b.world_ok);
+  std::swap(a.scratch_joint_moved, b.scratch_joint_moved);
 }
 
 }  // namespace
@@ -1138,6 +1160,15 @@ void ensure_metric_scratch(const Model& m, AdaptiveData& ad) {
   ad.Psi_buf.assign(phi, 0.0);
   ad.p_buf.assign(vec, 0.0);
   ad.eta.assign(m.tree.nnodes(), 0.0);
+  ad.Phi_loc.assign(phi, 0.0);
+  ad.Psi_loc.assign(phi, 0.0);
+  ad.W_loc.assign(m.tree.nnodes(), Mat6::Zero());
+  ad.q_cached = Eigen::VectorXd::Zero(m.nq);
+  ad.metric_cached = false;
+  ad.selections_since_refresh = 0;
+  ad.node_moved.assign(m.tree.nnodes(), 1);
+  ad.world_ok.assign(m.tree.nnodes(), 0);
+  ad.scratch_joint_moved.assign(m.nbodies, 0);
 }
 
 namespace {
@@ -1185,6 +1216,7 @@ std::vector<MemoryItem> memory_usage(const AdaptiveData& ad, const std::string& 
   add("scratch_joint_moved", heap_bytes(ad.scratch_joint_moved));
   add("kin_q", heap_bytes(ad.kin_q));
   add("keep_active_bodies", heap_bytes(ad.keep_active_bodies));
+  add("keep_selected", heap_bytes(ad.keep_selected));
   add("loaded_bodies", heap_bytes(ad.loaded_bodies));
   add("scratch_K", heap_bytes(ad.scratch_K));
   add("scratch_V", heap_bytes(ad.scratch_V));
@@ -1439,6 +1471,13 @@ void start_background_selection(const Model& m, AdaptiveData& ad) {
   if (!ad.worker.p) ad.worker.p = new AsyncSelector(m);
 }
 
+void request_reselection(AdaptiveData& ad) {
+  if (ad.worker.p) ad.worker.p->stale = true;   // a selection in flight is dropped when done
+  ad.steps_since_selection = 1 << 30;
+  ad.kin_current = false;
+  ad.body_terms_current = false;
+}
+
 bool adaptive_selection_wait(AdaptiveData& ad) {
   AsyncSelector* w = ad.worker.p;
   if (!w || w->status.load() == AsyncSelector::kIdle) return false;
@@ -1452,6 +1491,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
   ad.report.reselected = false;
   ad.step_work = 0;
   AsyncSelector* w = ad.worker.p;
+  bool installed = false;
   // A background selection that is done: installed if it was asked for the region still in force
   // and the same options, else dropped.
   if (w && w->status.load(std::memory_order_acquire) == AsyncSelector::kDone) {
@@ -1460,6 +1500,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
       const int T = static_cast<int>(w->asked_at - ad.selected_at);
       const double A0 = ad.report.neglected_metric, T0 = ad.report.total_metric;
       install_selection(m, d, st, ad, *w);
+      installed = true;
       const std::int64_t selections = ad.report.selections;
       ad.report = w->rep;
       ad.report.selections = selections + 1;
@@ -1468,6 +1509,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
       ad.report.reselected = true;
       ad.report.handover_lag = static_cast<int>(ad.step_count - w->asked_at);
       ad.selected_at = w->asked_at;
+      ad.keep_selected = w->ad.keep_active_bodies;
       ad.steps_since_selection = ad.report.handover_lag;
       if (opt.reselect_every <= 0) {
         ad.interval = ad.report.check_exact < 0
@@ -1484,7 +1526,9 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
   if (reselection_due(ad, opt)) {
     const bool changed = options_changed(ad, opt) || !ad.region_selected;
     if (!changed && opt.background_selection && w) {
-      post = w->status.load(std::memory_order_acquire) == AsyncSelector::kIdle;   // else in flight
+      // Not in the step that installed a region (its handover already does the work of about one
+      // hybrid pass): the state copy for the worker waits for the next step.
+      post = !installed && w->status.load(std::memory_order_acquire) == AsyncSelector::kIdle;   // else in flight
     } else {
       if (w) w->stale = true;
       const int T = ad.steps_since_selection;

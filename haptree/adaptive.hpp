@@ -70,7 +70,10 @@ struct AdaptiveOptions {
   /// region in force, evaluated at the state it was selected from. The handover step depends on the
   /// worker's speed (call adaptive_selection_wait for a reproducible one). false: every selection
   /// runs inside the step that is due, as a synchronous select_active_region. The first selection,
-  /// and one after ε, the budget or the mode changed, are always synchronous.
+  /// and one after ε, the budget or the mode changed, are always synchronous; a change of
+  /// AdaptiveData::keep_active_bodies (a new grab) makes one due that runs in the background too. The
+  /// worker thread runs at a lower scheduling priority (nice +10) than the caller's, so on a machine
+  /// with fewer free cores than busy threads the steps keep their rate and the selection waits.
   bool background_selection = true;
 };
 
@@ -168,6 +171,8 @@ struct AdaptiveData {
   /// every node in the frame of its reference body at the time they were assembled (valid while no
   /// joint inside the node, nor a translating joint at its handles, has moved: the bitwise q of
   /// the last selection, q_cached, tells); which nodes hold the current world values in Data/Psi_buf.
+  /// Lent to the background worker with Ψ, p, η: one cache serves every selection, whichever thread
+  /// runs it.
   ///@{
   /// Φ and Ψ of every node in its reference body's frame
   std::vector<double> Phi_loc, Psi_loc;
@@ -192,6 +197,9 @@ struct AdaptiveData {
   /// Bodies whose leaf every selection keeps in the active tree (its whole root path active, beyond
   /// the budget if need be): grabbed bodies, whose coupling snapshot needs an active path.
   std::vector<int> keep_active_bodies;
+  /// keep_active_bodies as the region in force was selected with: a change of keep_active_bodies
+  /// makes a selection due (in the background once a region is in force, like any other).
+  std::vector<int> keep_selected;
   /// Bodies with a non-zero State::f_ext; empty + scan_forces = scan every body each step.
   std::vector<int> loaded_bodies;
   bool scan_forces = true;             ///< loaded_bodies empty: scan every body's f_ext each step
@@ -267,6 +275,19 @@ inline void body_pose(const Data& d, const AdaptiveData& ad, int k, Mat3& R, Vec
   R = d.R[ref] * lR;
   r = d.r[ref] + d.R[ref] * lr;
 }
+
+/// Whether body k's leaf is a node of the active tree in force: its whole root path is active (or it is a
+/// root), so a coupling snapshot of a grab on k reads only that path. False before any region. O(1).
+inline bool body_in_active_tree(const Model& model, const AdaptiveData& ad, int k) {
+  return k >= 0 && k < model.nbodies && frontier_of(ad, k) == model.tree.leaf_of_body[k];
+}
+
+/// The caller changed the state outside adaptive_step: only the active joints' q and q̇ (a restore of
+/// a checkpoint taken under the region in force; the frontier caches stay valid). A background selection
+/// in flight, computed from the old state, is dropped; the next adaptive_step asks for a new one (in the
+/// background once a region is in force) and recomputes its kinematics. Any other change of the state
+/// needs select_active_region or set_active_region. O(1).
+void request_reselection(AdaptiveData& ad);
 
 /// Blocks until a pending background selection is computed (the next adaptive_step installs it);
 /// returns false if none is pending. For reproducible runs and tests.
