@@ -441,7 +441,9 @@ bool Coupler::iterate(double now) {
   f_u_.setZero();
   f_feed_.setZero();
   int64_t version = -1, snapshot_instance = 0;
-  double age = pose_time_s_ >= 0 ? now - pose_time_s_ : 1e9;
+  // Arrival times are taken by the handler thread: a message that arrived after this iteration's `now`
+  // was read is fresh (age 0), not negative, which the watchdog would count as stale.
+  double age = pose_time_s_ >= 0 ? std::max(0.0, now - pose_time_s_) : 1e9;
   if (grabbing_) {
     // The snapshot's age counts once coefficients for this grab are in use. Before the first one arrives
     // (the server has not seen the grab yet) the force is zero anyway: that is not a stale input, and
@@ -449,7 +451,9 @@ bool Coupler::iterate(double now) {
     const bool for_this_grab = snap.source_instance != grab_old_instance_ || snap.version > grab_old_version_;
     if (snap.version >= 0 && for_this_grab && snap.grabs.size() == 1 && snap.grabs[0].body == body_) {
       const double snap_t = snapshot_recv_s_.load(std::memory_order_acquire);
-      age = std::max(age, snap_t >= 0 ? now - snap_t : 1e9);
+      age = std::max(age, snap_t >= 0 ? std::max(0.0, now - snap_t) : 1e9);
+      if (1e3 * age > c_.max_grab_input_age_ms.load(std::memory_order_relaxed))
+        c_.max_grab_input_age_ms.store(1e3 * age, std::memory_order_relaxed);
       CouplingInputs in{x_dev, v_dev};
       bool clamped = false;
       if (coupler_feedback(opt_, snap, in, ws_, f_u_, f_feed_, force_n, &clamped) != CouplingStatus::kOk)
@@ -459,7 +463,10 @@ bool Coupler::iterate(double now) {
       snapshot_instance = snap.source_instance;
     }
   }
+  const int64_t trips_before = safety_.watchdog().trips();
   const GuardedForce g = safety_.apply(now, age, force_n, Vec3::Zero());
+  if (grabbing_ && safety_.watchdog().trips() != trips_before)
+    c_.grab_watchdog_trips.fetch_add(1, std::memory_order_relaxed);
   if (grabbing_) {
     c_.grab_feedbacks.fetch_add(1, std::memory_order_relaxed);
     if ((g.flags & kSafetyWatchdog) && g.force.isZero(0)) c_.grab_watchdog_zeros.fetch_add(1, std::memory_order_relaxed);

@@ -68,6 +68,10 @@ struct CouplerCounters {
   std::atomic<int64_t> last_snapshot_utime{0};    // system clock (µs) when the newest snapshot was accepted
   std::atomic<int64_t> subnormals_flushed{0};     // subnormal values of accepted snapshots set to 0
   std::atomic<bool> ftz_daz{false};               // run()'s thread computes with flush-to-zero + denormals-are-zero
+  // Largest input age (snapshot or device pose, whichever is older) the watchdog saw while a grab's
+  // coefficients were in use, ms.
+  std::atomic<double> max_grab_input_age_ms{0};
+  std::atomic<int64_t> grab_watchdog_trips{0};   // trips while a grab was held (the user's force taken away)
 };
 
 class Coupler {

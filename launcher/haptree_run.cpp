@@ -398,20 +398,21 @@ int main(int argc, char** argv) {
     if (imd_thread.joinable()) imd_thread.join();
     handler.stop();
     std::fprintf(out, "summary: %lld sim steps (%lld snapshots, last %zu bytes), mean sampled step %.3f ms, "
-                "%lld blow-up resets\n",
+                "longest step after the first %.2f ms (step %lld), %lld blow-up resets\n",
                 static_cast<long long>(server.steps_done()), static_cast<long long>(server.snapshots_published()),
-                server.last_snapshot_bytes(), lines ? sum_step_ms / lines : 0.0,
-                static_cast<long long>(server.resets()));
+                server.last_snapshot_bytes(), lines ? sum_step_ms / lines : 0.0, server.longest_step_ms(),
+                static_cast<long long>(server.longest_step_index()), static_cast<long long>(server.resets()));
     for (size_t u = 0; u < couplers.size(); ++u) {
       const auto& k = couplers[u]->counters();
       std::fprintf(out, "  user %zu: body %d, %lld coupler iterations, %lld snapshots accepted, %lld rejected, "
                    "max |f| at device %.3f N, device pose-to-force latency p50 %.1f us p99 %.1f us, "
-                   "%lld watchdog trips\n",
+                   "%lld watchdog trips (%lld while pulling), oldest input while pulling %.1f ms\n",
                   u, bodies[u], static_cast<long long>(k.iterations.load()),
                   static_cast<long long>(k.snapshots_accepted.load()),
                   static_cast<long long>(couplers[u]->rejected_messages()), bridges[u]->max_force_seen_n(),
                   bridges[u]->latency_percentile_us(0.5), bridges[u]->latency_percentile_us(0.99),
-                  static_cast<long long>(couplers[u]->watchdog_trips()));
+                  static_cast<long long>(couplers[u]->watchdog_trips()),
+                  static_cast<long long>(k.grab_watchdog_trips.load()), k.max_grab_input_age_ms.load());
     }
     std::fprintf(out, "  peak coupler rate %.0f Hz, peak |f| %.3f N\n", max_rate, max_force);
     if (viewer)

@@ -250,16 +250,19 @@ void SimServer::step_once() {
     u->applied_norm.store(u->f_u.tail<3>().norm(), std::memory_order_relaxed);
   }
   // 2. Selection. Every grabbed body's root path stays active (AdaptiveData::keep_active_bodies),
-  //    so each grabbed body is a leaf of the active tree and its snapshot is O(log n). A new grab or
-  //    a reset selects at once, in the step; the periodic reselection of robot scenes runs in the
-  //    background (adaptive_step), off the step. Molecules select here every reselect_every steps:
-  //    the force field's rigid regions follow each selection.
+  //    so each grabbed body is a leaf of the active tree and its snapshot is O(log n). Robot scenes:
+  //    a new grab makes a selection due, which runs in the background like the periodic ones
+  //    (adaptive_step), off the step; until the region that holds the body's path is in force the
+  //    grab has no force and no snapshot (the coupler's force is zero until its first snapshot).
+  //    A reset that could not be undone within the region in force selects at once, in the step.
+  //    Molecules select here, on a new grab and every reselect_every steps: the force field's rigid
+  //    regions follow each selection.
   keep_.clear();
   for (auto& u : users_)
     if (u->grabbing && std::find(keep_.begin(), keep_.end(), u->body) == keep_.end()) keep_.push_back(u->body);
   if (ad_->keep_active_bodies != keep_) ad_->keep_active_bodies = keep_;
   const bool periodic = ad_->steps_since_selection >= std::max(1, opt_.reselect_every);
-  if (grab_changed || resync_ || (molecule_ && periodic)) {
+  if (resync_ || (molecule_ && (grab_changed || periodic))) {
     if (molecule_) molecule_->scene.force_field->clear_rigid_regions();
     select_active_region(m, d, st, *ad_, adaptive_);
     resync_ = false;
@@ -275,7 +278,7 @@ void SimServer::step_once() {
     loaded_.clear();
   }
   for (auto& u : users_) {
-    if (!u->grabbing) continue;
+    if (!u->grabbing || !body_in_active_tree(m, *ad_, u->body)) continue;   // the body's pose is current
     u->grab = make_grab(d, u->body, u->local_point);
     const Vec3 arm = u->grab.point - d.r[u->body];
     Vec6 f0 = u->f_u;
@@ -316,19 +319,50 @@ bool SimServer::guard_state() {
   }
   const bool healthy = finite && std::isfinite(rate) && rate <= opt_.max_joint_rate;
   if (healthy) {
-    if (++steps_since_checkpoint_ >= opt_.checkpoint_every) {
+    // A checkpoint every checkpoint_every steps and, for robot scenes, at every new region (a memcpy
+    // of q): a reset then needs to restore only the joints of the region in force.
+    if (++steps_since_checkpoint_ >= opt_.checkpoint_every ||
+        (!molecule_ && ad_->report.selections != checkpoint_selections_)) {
       checkpoint_->q = st.q;
       checkpoint_->t = st.t;
+      checkpoint_selections_ = ad_->report.selections;
       steps_since_checkpoint_ = 0;
     }
     return false;
   }
   const int64_t n = resets_.fetch_add(1, std::memory_order_relaxed) + 1;
+  // Robot scenes, without a pass over the whole tree (O(|active|); the next selection runs in the
+  // background; the frontier caches still hold because no inactive joint moved):
+  //  - the region in force is the checkpoint's: only its active joints have moved since (inactive
+  //    joints have q̇ = 0), so restoring them restores the whole checkpoint;
+  //  - the region was installed by this very step (a checkpoint follows every new region's first
+  //    healthy step), for the configuration at the step's start: that configuration, at rest, by
+  //    integrating the active joints back over dt (the lock into a new region is what can diverge).
+  // Otherwise (molecules, a non-finite state) every joint from the checkpoint and a selection in the step.
+  const bool region_only = !molecule_ && checkpoint_selections_ == ad_->report.selections;
+  const bool step_back = !molecule_ && !region_only && finite && std::isfinite(rate);
   if (n == 1 || n % 100 == 0)
     spdlog::warn("sim_server: state diverged at t = {:.4g} (max |q̇| {:.3g} > {:.3g} or non-finite); "
-                 "restored the checkpoint of t = {:.4g} at rest (reset #{}). Lower --dt or the coupling "
-                 "stiffness/damping, or add --budget-dofs headroom.",
-                 st.t, rate, opt_.max_joint_rate, checkpoint_->t, n);
+                 "restored {} at rest ({}; reset #{}). Lower --dt or the coupling stiffness/damping, or add "
+                 "--budget-dofs headroom.",
+                 st.t, rate, opt_.max_joint_rate,
+                 step_back ? fmt::format("the state of t = {:.4g}", st.t - opt_.dt)
+                           : fmt::format("the checkpoint of t = {:.4g}", checkpoint_->t),
+                 region_only || step_back ? "the active region's joints" : "every joint, then a selection in the step",
+                 n);
+  steps_since_checkpoint_ = 0;
+  ++version_;
+  if (region_only || step_back) {
+    local_resets_.fetch_add(1, std::memory_order_relaxed);
+    for (int J : ad_->active_joints) {
+      const int a = m.q_adr[J], nq = (J + 1 < m.nbodies ? m.q_adr[J + 1] : m.nq) - a;
+      if (region_only) st.q.segment(a, nq) = checkpoint_->q.segment(a, nq);
+      else integrate_joint(m, J, st.q, st.qd, -opt_.dt);
+      if (m.v_num[J] > 0) st.qd.segment(m.v_adr[J], m.v_num[J]).setZero();
+    }
+    request_reselection(*ad_);
+    return true;
+  }
   const double t = st.t;
   st.q = checkpoint_->q;
   st.qd.setZero();
@@ -336,8 +370,6 @@ bool SimServer::guard_state() {
   forward_kinematics(*model_, *data_, st.q);
   ad_->steps_since_selection = 1 << 30;
   resync_ = true;   // reselect (and rebuild the frontier caches) in the next step, synchronously
-  steps_since_checkpoint_ = 0;
-  ++version_;
   return true;
 }
 
@@ -347,7 +379,7 @@ void SimServer::publish_snapshots() {
   // No pose update: a grabbed body is a leaf of the active tree, so its pose and its handles'
   // offsets are the step's own (reduced kinematics), and the snapshot reads only its root path.
   for (auto& u : users_) {
-    if (!u->grabbing) continue;
+    if (!u->grabbing || !body_in_active_tree(m, *ad_, u->body)) continue;   // its region is not in force yet
     // The coefficients in Data are those of the pass just done (poses at the start of the step).
     std::vector<Grab>& grabs = u->snapshot.grabs;
     grabs.assign(1, make_grab(d, u->body, u->local_point));
@@ -516,7 +548,11 @@ int SimServer::run(const std::atomic<bool>& stop) {
     const double ms = std::chrono::duration<double, std::milli>(b - a).count();
     step_ms_.store(ms, std::memory_order_relaxed);
     max_step_ms_ = std::max(max_step_ms_, ms);
-    steps_.fetch_add(1, std::memory_order_relaxed);
+    const int64_t index = steps_.fetch_add(1, std::memory_order_relaxed) + 1;
+    if (index > 1 && ms > longest_step_ms_.load(std::memory_order_relaxed)) {
+      longest_step_ms_.store(ms, std::memory_order_relaxed);
+      longest_step_index_.store(index, std::memory_order_relaxed);
+    }
     window_step_ms_sum_ += ms;
     window_step_ms_max_ = std::max(window_step_ms_max_, ms);
     if (opt_.display_rate_hz > 0 && b >= next_display && scene_chunk_ < 0) {

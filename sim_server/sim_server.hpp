@@ -92,6 +92,12 @@ class SimServer {
   int64_t snapshots_published() const { return snapshots_.load(std::memory_order_relaxed); }
   size_t last_snapshot_bytes() const { return snapshot_bytes_.load(std::memory_order_relaxed); }
   int64_t resets() const { return resets_.load(std::memory_order_relaxed); }
+  // ... of which undone within the active region (no selection in the step): resets() - this selected in the step.
+  int64_t local_resets() const { return local_resets_.load(std::memory_order_relaxed); }
+  // Longest whole step of the run after the first (step, snapshot, scene chunks), ms, and which step it
+  // was (0: none yet). The first step selects the first region, a pass over the whole tree.
+  double longest_step_ms() const { return longest_step_ms_.load(std::memory_order_relaxed); }
+  int64_t longest_step_index() const { return longest_step_index_.load(std::memory_order_relaxed); }
   const SimServerCounters& counters() const { return c_; }
   int64_t instance_id() const { return instance_id_; }
   // Force (at the grab point, world axes) applied to user u in the last step, after the watchdog and
@@ -120,6 +126,8 @@ class SimServer {
   SimServerCounters c_;
   int64_t stats_seq_ = 0;
   double max_step_ms_ = 0;   // over the current stats period
+  std::atomic<double> longest_step_ms_{0};        // over the whole run
+  std::atomic<int64_t> longest_step_index_{0};
   std::shared_ptr<const Model> model_;
   std::unique_ptr<molecule_fwd::Holder> molecule_;
   std::unique_ptr<Data> data_;
@@ -132,7 +140,8 @@ class SimServer {
   int64_t snapshot_errors_ = 0;
   std::unique_ptr<State> checkpoint_;   // last healthy state (q, t); restored at rest on blow-up
   int64_t steps_since_checkpoint_ = 0;
-  std::atomic<int64_t> resets_{0};
+  int64_t checkpoint_selections_ = -1;  // AdaptiveReport::selections of the region at the checkpoint
+  std::atomic<int64_t> resets_{0}, local_resets_{0};
   bool just_reset_ = false;
   bool resync_ = false;             // next step selects synchronously (after a reset of the state)
   std::vector<int> loaded_, keep_;  // bodies with a user force (robot scenes); grabbed bodies
