@@ -1252,9 +1252,13 @@ std::vector<MemoryItem> memory_usage(const AdaptiveData& ad, const std::string& 
 namespace {
 
 // Copies the state of this step (q, q̇, τ, the loaded bodies' f_ext) and the region in force to the
-// worker and starts it. O(nq + nv) copies (memcpy) plus O(|region| + |loaded|).
-void post_selection(const Model& m, const State& st, AdaptiveData& ad, const AdaptiveOptions& opt) {
+// worker and starts it. O(nq + nv) copies (memcpy) plus O(|region| + |loaded|). Never waits: if the
+// worker still holds its mutex (between publishing its last result and going back to sleep, at its
+// lower priority), nothing is posted and the next step tries again. Returns whether it posted.
+bool post_selection(const Model& m, const State& st, AdaptiveData& ad, const AdaptiveOptions& opt) {
   AsyncSelector& w = *ad.worker.p;
+  std::unique_lock<std::mutex> lk(w.mu, std::try_to_lock);
+  if (!lk.owns_lock()) return false;
   if (w.ad.Psi_buf.empty()) swap_metric_scratch(ad, w.ad);   // lent for this selection
   w.st.q = st.q;
   w.st.qd = st.qd;
@@ -1273,12 +1277,11 @@ void post_selection(const Model& m, const State& st, AdaptiveData& ad, const Ada
   w.asked_at = ad.step_count;
   w.stale = false;
   ad.step_work += static_cast<std::int64_t>(ad.active_nodes.size() + ad.frontier.size() + w.loaded.size());
-  {
-    std::lock_guard<std::mutex> lk(w.mu);
-    w.status = AsyncSelector::kQueued;
-  }
+  w.status = AsyncSelector::kQueued;
+  lk.unlock();
   w.cv.notify_all();
   (void)m;
+  return true;
 }
 
 // Installs the worker's region: the union's fine caches are swapped in (O(1)); poses and velocities
