@@ -38,6 +38,34 @@ void for_each_body(const AssemblyTree& t, int node, std::vector<int>& stack, F&&
 
 }  // namespace
 
+namespace {
+
+// The selection's buffers (swap_metric_scratch lists them), empty of values: Ψ, p, η of every node
+// and the incremental metric's cache, marked as holding nothing.
+void allocate_metric_scratch(const Model& m, AdaptiveData& ad) {
+  const int nn = m.tree.nnodes();
+  std::size_t phi = 0, vec = 0;
+  for (int node = 0; node < nn; ++node) {
+    const std::size_t h = m.tree.handle_num[node];
+    phi += 36 * h * h;
+    vec += 6 * h;
+  }
+  ad.Psi_buf.assign(phi, 0.0);
+  ad.p_buf.assign(vec, 0.0);
+  ad.eta.assign(nn, 0.0);
+  ad.Phi_loc.assign(phi, 0.0);
+  ad.Psi_loc.assign(phi, 0.0);
+  ad.W_loc.assign(nn, Mat6::Zero());
+  ad.q_cached = Eigen::VectorXd::Zero(m.nq);
+  ad.metric_cached = false;
+  ad.selections_since_refresh = 0;
+  ad.node_moved.assign(nn, 1);
+  ad.world_ok.assign(nn, 0);
+  ad.scratch_joint_moved.assign(m.nbodies, 0);
+}
+
+}  // namespace
+
 AdaptiveData::AdaptiveData(const Model& m) : AdaptiveData(m, false) {}
 
 AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
@@ -49,7 +77,7 @@ AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
   X_R.assign(nn, Mat3::Identity());
   X_r.assign(nn, Vec3::Zero());
   fine_frontier.reserve(nn);
-  keep_selected.reserve(8);   // the grabbed bodies: a handover copies the list without allocating
+  keep_selected.reserve(8);   // the grabbed bodies: a synchronous selection copies the list without allocating
   scratch_nodes.reserve(nn);
   scratch_joints.reserve(nb);
   scratch_mark.assign(nn, 0);
@@ -62,24 +90,7 @@ AdaptiveData::AdaptiveData(const Model& m, bool selection_only) : impulse(m) {
   comp_ground.assign(nn, 0);
   local_R.assign(nb, Mat3::Identity());
   local_r.assign(nb, Vec3::Zero());
-  std::size_t phi = 0, vec = 0;
-  for (int node = 0; node < nn; ++node) {
-    const std::size_t h = t.handle_num[node];
-    phi += 36 * h * h;
-    vec += 6 * h;
-  }
-  if (!selection_only) {   // the worker borrows the stepping thread's set (swap_metric_scratch)
-    Psi_buf.assign(phi, 0.0);
-    p_buf.assign(vec, 0.0);
-    eta.assign(nn, 0.0);
-    Phi_loc.assign(phi, 0.0);
-    Psi_loc.assign(phi, 0.0);
-    W_loc.assign(nn, Mat6::Zero());
-    q_cached = Eigen::VectorXd::Zero(m.nq);
-    node_moved.assign(nn, 1);
-    world_ok.assign(nn, 0);
-    scratch_joint_moved.assign(nb, 0);
-  }
+  if (!selection_only) allocate_metric_scratch(m, *this);   // the worker borrows this set (swap_metric_scratch)
   scratch_f.assign(std::max(1, t.max_handles), Vec6::Zero());
   active_nodes.reserve(nn);
   frontier.reserve(nn);
@@ -447,7 +458,7 @@ void metric_pass(const Model& m, Data& d, const State& st, AdaptiveData& ad, boo
   exact = exact || !ad.metric_cached;
   auto& jm = ad.scratch_joint_moved;
   for (int k = 1; k < m.nbodies; ++k) {
-    const int a = m.q_adr[k], n = (k + 1 < m.nbodies ? m.q_adr[k + 1] : m.nq) - a;
+    const int a = m.q_adr[k], n = joint_nq(m.joint_type[k]);
     jm[k] = exact;
     for (int i = 0; i < n && !jm[k]; ++i) jm[k] = st.q(a + i) != ad.q_cached(a + i);
   }
@@ -861,7 +872,7 @@ namespace {
 
 // q (nq_k entries) of joint k.
 int q_num(const Model& m, int k) {
-  return (k + 1 < m.nbodies ? m.q_adr[k + 1] : m.nq) - m.q_adr[k];
+  return joint_nq(m.joint_type[k]);
 }
 
 // Whether st's active-joint q, q̇ are bitwise those kin_q recorded (record = false), or records them.
@@ -1151,24 +1162,7 @@ void ensure_metric_scratch(const Model& m, AdaptiveData& ad) {
       return;
     }
   }
-  std::size_t phi = 0, vec = 0;
-  for (int node = 0; node < m.tree.nnodes(); ++node) {
-    const std::size_t h = m.tree.handle_num[node];
-    phi += 36 * h * h;
-    vec += 6 * h;
-  }
-  ad.Psi_buf.assign(phi, 0.0);
-  ad.p_buf.assign(vec, 0.0);
-  ad.eta.assign(m.tree.nnodes(), 0.0);
-  ad.Phi_loc.assign(phi, 0.0);
-  ad.Psi_loc.assign(phi, 0.0);
-  ad.W_loc.assign(m.tree.nnodes(), Mat6::Zero());
-  ad.q_cached = Eigen::VectorXd::Zero(m.nq);
-  ad.metric_cached = false;
-  ad.selections_since_refresh = 0;
-  ad.node_moved.assign(m.tree.nnodes(), 1);
-  ad.world_ok.assign(m.tree.nnodes(), 0);
-  ad.scratch_joint_moved.assign(m.nbodies, 0);
+  allocate_metric_scratch(m, ad);
 }
 
 namespace {
@@ -1512,7 +1506,7 @@ const AdaptiveReport& adaptive_step(const Model& m, Data& d, State& st, Adaptive
       ad.report.reselected = true;
       ad.report.handover_lag = static_cast<int>(ad.step_count - w->asked_at);
       ad.selected_at = w->asked_at;
-      ad.keep_selected = w->ad.keep_active_bodies;
+      std::swap(ad.keep_selected, w->ad.keep_active_bodies);   // no copy: the next post rewrites the worker's
       ad.steps_since_selection = ad.report.handover_lag;
       if (opt.reselect_every <= 0) {
         ad.interval = ad.report.check_exact < 0

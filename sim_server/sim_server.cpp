@@ -313,7 +313,7 @@ bool SimServer::guard_state() {
   double rate = 0;
   bool finite = true;
   for (int J : ad_->active_joints) {
-    const int a = m.q_adr[J], n = (J + 1 < m.nbodies ? m.q_adr[J + 1] : m.nq) - a;
+    const int a = m.q_adr[J], n = joint_nq(m.joint_type[J]);
     finite = finite && st.q.segment(a, n).allFinite();
     if (m.v_num[J] > 0) rate = std::max(rate, st.qd.segment(m.v_adr[J], m.v_num[J]).cwiseAbs().maxCoeff());
   }
@@ -355,7 +355,7 @@ bool SimServer::guard_state() {
   if (region_only || step_back) {
     local_resets_.fetch_add(1, std::memory_order_relaxed);
     for (int J : ad_->active_joints) {
-      const int a = m.q_adr[J], nq = (J + 1 < m.nbodies ? m.q_adr[J + 1] : m.nq) - a;
+      const int a = m.q_adr[J], nq = joint_nq(m.joint_type[J]);
       if (region_only) st.q.segment(a, nq) = checkpoint_->q.segment(a, nq);
       else integrate_joint(m, J, st.q, st.qd, -opt_.dt);
       if (m.v_num[J] > 0) st.qd.segment(m.v_adr[J], m.v_num[J]).setZero();

@@ -754,7 +754,7 @@ TEST(AdaptiveBackground, RestoringTheActiveJointsRestoresTheWholeState) {
       if (!(i % 6 == 5 || (ad.report.selection_pending && dropped < 3))) continue;
       const bool pending = adaptive_selection_wait(ad);
       for (int J : ad.active_joints) {
-        const int a = m->q_adr[J], nq = (J + 1 < m->nbodies ? m->q_adr[J + 1] : m->nq) - a;
+        const int a = m->q_adr[J], nq = joint_nq(m->joint_type[J]);
         st.q.segment(a, nq) = checkpoint.segment(a, nq);
         st.qd.segment(m->v_adr[J], m->v_num[J]).setZero();
       }
