@@ -62,17 +62,23 @@ def robot(exe, browser, urdf, out_dir, docs, name, watch_body, expect_missing=0,
         shot = os.path.join(out_dir, f"viewer_robot_{name}.png")
         page.screenshot(shot)
         if pull_body is not None:
-            # the centre of the mesh, else the centres of its triangles, until a press picks a mesh
-            pts = [page.eval(f"haptreeMeshOnScreen({pull_body})")] + page.eval(f"haptreeMeshTrianglesOnScreen({pull_body}, 24)")
-            pick = ""
-            for p in pts:
+            # the centre of the mesh, else the centres of its triangles, until a press picks a mesh. The
+            # body moves (it hangs and swings), so each press goes where the mesh is drawn just before it,
+            # and the presses go on for a while: on a loaded machine a frame can take long enough for a
+            # thin body to leave the point between the query and the press.
+            pick, attempt, deadline = "", 0, time.time() + 30
+            while time.time() < deadline:
+                pts = [page.eval(f"haptreeMeshOnScreen({pull_body})")] + \
+                    page.eval(f"haptreeMeshTrianglesOnScreen({pull_body}, 24)")
+                p = pts[attempt % len(pts)]
+                attempt += 1
                 page.mouse("mouseMoved", p["x"], p["y"])
                 page.mouse("mousePressed", p["x"], p["y"], buttons=1, button="left")
                 pick = ds(page, "pick")
                 if pick.startswith("mesh body"):
                     break
                 page.mouse("mouseReleased", p["x"], p["y"], button="left")
-            check(pick.startswith("mesh body"), f"{name}: a press on body {pull_body}'s mesh picks a mesh ({pick!r})")
+            check(pick.startswith("mesh body"), f"{name}: a press on body {pull_body}'s mesh picks a mesh ({pick!r}, press {attempt})")
             picked = int(pick.split()[-1]) if pick.startswith("mesh body") else -1
             for k in range(1, 9):
                 page.mouse("mouseMoved", p["x"] + 6 * k, p["y"] - 8 * k, buttons=1, button="left")
