@@ -2,7 +2,8 @@
 // stream read by websocketpp's RFC 6455 processor (hybi13, as the viewer's server runs it, with the
 // viewer's message size limit); every complete message goes through parse_client_message (viewer/input.hpp).
 // Oracle: no crash, no sanitizer report, no exception escaping; a parsed command is one of the page's three
-// with a finite pointer position below 1e6 and a non-negative atom index.
+// pointer commands with a finite pointer position below 1e6 and a non-negative atom index, or its
+// acknowledgement of frames with a non-negative count.
 #define ASIO_STANDALONE
 #define _WEBSOCKETPP_CPP11_STL_
 #include <websocketpp/config/core.hpp>
@@ -17,7 +18,11 @@ namespace {
 void check(const haptree::ClientCommand& c) {
   using K = haptree::ClientCommand::Kind;
   if (c.kind == K::kInvalid) return;
-  FUZZ_CHECK(c.kind == K::kDown || c.kind == K::kMove || c.kind == K::kUp);
+  FUZZ_CHECK(c.kind == K::kDown || c.kind == K::kMove || c.kind == K::kUp || c.kind == K::kAck);
+  if (c.kind == K::kAck) {
+    FUZZ_CHECK(c.frames >= 0);
+    return;
+  }
   if (c.kind != K::kUp) FUZZ_CHECK(c.p.allFinite() && c.p.cwiseAbs().maxCoeff() < 1e6);
   if (c.kind == K::kDown) FUZZ_CHECK(c.atom >= 0);
 }

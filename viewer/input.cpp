@@ -34,6 +34,12 @@ ClientCommand parse_client_message(const char* data, size_t size) noexcept {
       if (read_p(c.p)) c.kind = ClientCommand::Kind::kMove;
     } else if (t == "up") {
       c.kind = ClientCommand::Kind::kUp;
+    } else if (t == "ack") {
+      if (!j.contains("n") || !j["n"].is_number_integer()) return c;
+      const int64_t n = j["n"].get<int64_t>();
+      if (n < 0) return c;
+      c.frames = n;
+      c.kind = ClientCommand::Kind::kAck;
     }
   } catch (...) {
     c = ClientCommand{};

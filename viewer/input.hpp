@@ -4,6 +4,7 @@
 // functions on bytes, in their own small library (haptree_viewer_input) so the fuzz targets
 // (fuzz/viewer_ws.cpp, fuzz/viewer_http.cpp) call exactly what the viewer calls.
 #include <cstddef>
+#include <cstdint>
 #include <string>
 
 #include "haptree/spatial.hpp"
@@ -17,10 +18,11 @@ constexpr size_t kMaxClientMessageBytes = 4096;
 // One message from a page (fuzz target: any bytes); longer than kMaxClientMessageBytes: refused unread.
 // Never throws.
 struct ClientCommand {
-  enum class Kind { kInvalid, kDown, kMove, kUp };
+  enum class Kind { kInvalid, kDown, kMove, kUp, kAck };
   Kind kind = Kind::kInvalid;
   int atom = -1;                    // kDown: display point picked (atom, or body for body scenes)
   Vec3 p = Vec3::Zero();            // kDown/kMove: pointer target, display coordinates (finite)
+  int64_t frames = 0;               // kAck: binary messages the page has received on this socket (>= 0)
 };
 ClientCommand parse_client_message(const char* data, size_t size) noexcept;
 

@@ -162,6 +162,8 @@ struct Client {
   int64_t updates_sent = -1, scene_sent = -1;   // Impl::updates and scene_msgs of its last frame
   Clock::time_point last_frame{};
   bool due = false;
+  int64_t frames_sent = 0;     // frames sent on this socket
+  int64_t frames_acked = -1;   // frames the page said it received; -1: it never acknowledges (no window)
 };
 
 }  // namespace
@@ -729,6 +731,10 @@ void Viewer::Impl::on_message(Hdl h, const std::string& pl) {
   if (it == clients.end()) return;
   Client& c = it->second;
   const ClientCommand cmd = parse_client_message(pl.data(), pl.size());
+  if (cmd.kind == ClientCommand::Kind::kAck) {   // from any role: it only paces this socket's frames
+    c.frames_acked = std::max(c.frames_acked, std::min(cmd.frames, c.frames_sent));
+    return;
+  }
   if (c.role == Role::kWatch && cmd.kind == ClientCommand::Kind::kDown)
     refuse(Refusal::kWatchPull, c.address, "client " + std::to_string(c.id));
   if (c.user < 0) return;
@@ -769,6 +775,7 @@ void Viewer::Impl::on_message(Hdl h, const std::string& pl) {
       c.down = false;
       publish_pointer(c, false);
       break;
+    case ClientCommand::Kind::kAck:   // handled above
     case ClientCommand::Kind::kInvalid:
       break;
   }
@@ -834,6 +841,7 @@ void Viewer::Impl::tick() {
     for (size_t k = 0; k < active.size(); ++k) mask[k] = active[k] ? '1' : '0';
     f["t"] = "frame";
     f["seq"] = ++frame_seq;
+    f["utime"] = bus::now_utime();   // when built: the page's measure of how late it reads (same clock on one host)
     f["version"] = scene_version;
     f["scene_age_ms"] = scene_utime > 0 ? 1e-3 * static_cast<double>(bus::now_utime() - scene_utime) : -1.0;
     f["sim_time"] = sim_time;
@@ -916,7 +924,9 @@ void Viewer::Impl::tick() {
       if (!c.due) continue;
       auto con = srv.get_con_from_hdl(kv.first);
       if (!con || con->get_state() != websocketpp::session::state::open) continue;
-      if (con->get_buffered_amount() > opt.max_buffered_bytes) {   // slow tab: skip, do not queue
+      // slow tab: skip, do not queue
+      if ((c.frames_acked >= 0 && c.frames_sent - c.frames_acked >= opt.max_frames_in_flight) ||
+          con->get_buffered_amount() > opt.max_buffered_bytes) {
         frames_dropped.fetch_add(1, std::memory_order_relaxed);
         continue;
       }
@@ -932,6 +942,7 @@ void Viewer::Impl::tick() {
       c.updates_sent = upd;
       if (with_positions) c.scene_sent = sm;
       c.last_frame = now;
+      ++c.frames_sent;
       frames_sent.fetch_add(1, std::memory_order_relaxed);
       frame_bytes.fetch_add(static_cast<int64_t>(msg_buf.size()), std::memory_order_relaxed);
     }
@@ -950,6 +961,7 @@ void Viewer::Impl::schedule() {
 Viewer::Viewer(bus::Bus& bus, const ViewerOptions& options) : impl_(std::make_unique<Impl>(bus, options)) {
   if (!(options.max_fps > 0 && options.max_fps <= 240)) throw std::runtime_error("viewer: --max-fps must be in (0, 240]");
   if (options.users < 1 || options.users > 8) throw std::runtime_error("viewer: --users must be in [1, 8]");
+  if (options.max_frames_in_flight < 1) throw std::runtime_error("viewer: max_frames_in_flight must be >= 1");
   if (options.port < 0 || options.port > 65535) throw std::runtime_error("viewer: --port must be in [0, 65535]");
   impl_->setup_access();
   impl_->load_scene();

@@ -5,9 +5,14 @@
 // (127.0.0.1 unless told otherwise; http, or https with a certificate), to holders of a token only, the
 // page (viewer/web), the scene as PDB (/scene.pdb) and one WebSocket (/ws). A frame is one binary
 // message (<= max_fps, only when something shown changed, else once a second): the overlays and the HUD
-// as JSON, then the display points as Float32 when the scene moved. A client whose socket still holds
-// more than max_buffered_bytes gets no new frame (dropped, counted): a slow tab never slows the bus
-// handler or the other tabs.
+// as JSON, then the display points as Float32 when the scene moved. The page acknowledges each frame it
+// receives ({"t":"ack","n":frames}); once a client has acknowledged one, it gets no new frame while
+// max_frames_in_flight of its frames are unacknowledged, so a tab that reads slowly gets the newest
+// state, a few frames late at most, instead of a queue of old ones (the socket's and the browser's
+// buffers hold many seconds of frames). A client whose socket still holds more than max_buffered_bytes
+// gets no new frame either. Frames skipped for either reason are counted (frames_dropped; the next
+// frame a tab gets carries everything that changed): a slow tab never slows the bus handler or the
+// other tabs.
 // The page is also a device: each tab with the pull token takes a free user id; its pointer comes back
 // as JSON and goes out as lcmt_pointer (device metres, the coupler's mapping inverted) to that user's
 // `browser` device. The bus handler only copies messages into slots (one small mutex); frames are built
@@ -36,6 +41,7 @@ struct ViewerOptions {
   int users = 2;                   // user ids 0..users-1 a tab may take (one coupler + browser device each)
   double max_fps = 30;
   size_t max_buffered_bytes = 1 << 20;
+  int max_frames_in_flight = 4;    // unacknowledged frames per acknowledging client (>= 1)
   std::string channel_suffix;
   // Access: the page, its files and its WebSocket need a token (`?token=` once, then a cookie). Two roles:
   // the pull token may take a user and pull, the watch token only watches.

@@ -29,7 +29,7 @@ namespace {
 
 ClientCommand parse(const std::string& s) { return parse_client_message(s.data(), s.size()); }
 
-TEST(ViewerParse, AcceptsTheThreeCommands) {
+TEST(ViewerParse, AcceptsThePointerCommandsAndTheAcknowledgement) {
   ClientCommand c = parse(R"({"t":"down","i":12,"p":[1.5,-2,3e1]})");
   EXPECT_EQ(c.kind, ClientCommand::Kind::kDown);
   EXPECT_EQ(c.atom, 12);
@@ -38,6 +38,10 @@ TEST(ViewerParse, AcceptsTheThreeCommands) {
   EXPECT_EQ(c.kind, ClientCommand::Kind::kMove);
   EXPECT_EQ(c.p, Vec3(0, 0, 1));
   EXPECT_EQ(parse(R"({"t":"up"})").kind, ClientCommand::Kind::kUp);
+  c = parse(R"({"t":"ack","n":1234567890123})");
+  EXPECT_EQ(c.kind, ClientCommand::Kind::kAck);
+  EXPECT_EQ(c.frames, 1234567890123);
+  EXPECT_EQ(parse(R"({"t":"ack","n":0})").frames, 0);
 }
 
 TEST(ViewerParse, RefusesNonFiniteMalformedAndAbsurdInput) {
@@ -45,7 +49,9 @@ TEST(ViewerParse, RefusesNonFiniteMalformedAndAbsurdInput) {
                         R"({"t":"move","p":[1e7,0,0]})", R"({"t":"move","p":[0,0]})", R"({"t":"move","p":["0",0,0]})",
                         R"({"t":"move"})", R"({"t":"down","p":[0,0,0]})", R"({"t":"down","i":-1,"p":[0,0,0]})",
                         R"({"t":"down","i":1.5,"p":[0,0,0]})", R"({"t":"down","i":4294967296,"p":[0,0,0]})",
-                        R"({"t":"jump"})", R"({"t":3})", R"([1,2,3])", "", "{", "\xff\xfe", "null"})
+                        R"({"t":"jump"})", R"({"t":3})",
+                        R"({"t":"ack"})", R"({"t":"ack","n":-1})", R"({"t":"ack","n":1.5})", R"({"t":"ack","n":"7"})",
+                        R"({"t":"ack","n":18446744073709551615})", R"([1,2,3])", "", "{", "\xff\xfe", "null"})
     EXPECT_EQ(parse(s).kind, ClientCommand::Kind::kInvalid) << s;
   EXPECT_EQ(parse_client_message(nullptr, 10).kind, ClientCommand::Kind::kInvalid);
   const std::string big = R"({"t":"up","pad":")" + std::string(5000, 'x') + "\"}";

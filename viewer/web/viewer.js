@@ -39,7 +39,7 @@ const ws = new WebSocket(`${location.protocol === 'https:' ? 'wss' : 'ws'}://${l
   (token ? `?token=${encodeURIComponent(token)}` : ''));
 ws.binaryType = 'arraybuffer';
 ws.onclose = () => { setStatus('disconnected (session over?)'); };
-let wsBytes = 0, wsFrames = 0;
+let wsBytes = 0, wsFrames = 0, wsReceived = 0, lateFrames = 0;   // lateFrames: read > 2 s after they were built
 const decoder = new TextDecoder();
 ws.onmessage = (ev) => {
   if (typeof ev.data === 'string') {   // the hello
@@ -48,6 +48,11 @@ ws.onmessage = (ev) => {
     if (m.t === 'hello') onHello(m);
     return;
   }
+  // The viewer sends a few frames ahead of these acknowledgements, no more: a page that falls behind
+  // (a slow machine, a busy tab) gets the newest state, not a queue of old ones.
+  wsReceived += 1;
+  if (ws.readyState === WebSocket.OPEN) ws.send(`{"t":"ack","n":${wsReceived}}`);
+  body.dataset.wsReceived = String(wsReceived);
   // a frame: "HTF1", uint32 JSON length, JSON, Float32 x y z per point (absent: the scene did not move)
   const buf = ev.data, dv = new DataView(buf);
   if (buf.byteLength < 8 || dv.getUint32(0, false) !== 0x48544631) return;
@@ -56,6 +61,11 @@ ws.onmessage = (ev) => {
   let f;
   try { f = JSON.parse(decoder.decode(new Uint8Array(buf, 8, n))); } catch (e) { return; }
   wsBytes += buf.byteLength; wsFrames += 1;
+  // how long after the viewer built it this frame is read (meaningful when the page runs on the viewer's host)
+  const ageMs = typeof f.utime === 'number' ? Date.now() - f.utime / 1000 : NaN;
+  if (ageMs > 2000) lateFrames += 1;
+  body.dataset.frameAgeMs = Number.isFinite(ageMs) ? ageMs.toFixed(0) : '';
+  body.dataset.lateFrames = String(lateFrames);
   const pos = buf.byteLength > 8 + n ? new Float32Array(buf, 8 + n) : null;
   // at most one draw per animation frame: a newer frame replaces a pending one, its positions kept
   pending = { pos: pos || (pending && pending.pos), frame: f, active: f.active !== undefined ? f.active : pending && pending.active };
