@@ -116,9 +116,16 @@ def main():
         wait_for("user 1 released", lambda: [f for f in launcher.forces_since(1, t_close + 1.5)][:1] == [0.0], 60)
         after = launcher.forces_since(1, t_close + 1.5)
         check(after and all(f == 0.0 for f in after), f"user 1's force is 0 after its tab closed {after}")
-    except Exception as e:  # a failed wait or CDP call: report it with the launcher's tail
+    except Exception as e:  # a failed wait or CDP call: report it with the launcher's tail and the pages' state
         failures.append(str(e))
         print("FAIL", e, flush=True)
+        for name in ("a", "b"):
+            page = locals().get(name)
+            try:
+                state = page.eval("JSON.stringify(document.body.dataset)") if page else None
+            except Exception as e2:  # a closed or hung tab
+                state = f"unreadable ({e2})"
+            print(f"tab {name.upper()}: {state}", flush=True)
     finally:
         if browser:
             browser.quit()
