@@ -40,7 +40,7 @@ def main():
     args = [exe, "--scene", "bacteriorhodopsin", "--users", "1", "--viewer-users", "2", "--viewer-port", str(port),
             "--duration-s", "300"] + (["--processes"] if processes else [])
     launcher = Launcher(args, os.path.join(out_dir, f"launcher_{tag}.log"))
-    browser = None
+    browser = a = b = None
     check = Checks()
     failures = check.failures
 
@@ -119,13 +119,12 @@ def main():
     except Exception as e:  # a failed wait or CDP call: report it with the launcher's tail and the pages' state
         failures.append(str(e))
         print("FAIL", e, flush=True)
-        for name in ("a", "b"):
-            page = locals().get(name)
+        for name, page in (("A", a), ("B", b)):
             try:
                 state = page.eval("JSON.stringify(document.body.dataset)") if page else None
             except Exception as e2:  # a closed or hung tab
                 state = f"unreadable ({e2})"
-            print(f"tab {name.upper()}: {state}", flush=True)
+            print(f"tab {name}: {state}", flush=True)
     finally:
         if browser:
             browser.quit()
